@@ -160,6 +160,9 @@ class TaskConfig:
     tip_limit: float = math.radians(20.0)  # rad, roll or pitch beyond this means the box tipped
     drop_limit: float = 0.03  # m, box centre this far below its resting height means it fell
     reward_eps: float = 1e-6  # epsilon of the rewards R1, R2 (paper eq. 1)
+    # Optional noise on the initial pose (the paper starts every episode from the same pose: 0 by default).
+    init_xy_noise: float = 0.0  # m, box centre x and y each ~ U(-n, n)
+    init_yaw_noise: float = 0.0  # rad, yaw ~ U(-n, n)
 
     def __post_init__(self):
         if self.balance_limit <= 0 or self.yaw_tolerance <= 0 or self.max_steps < 1:

@@ -3,7 +3,8 @@
 Rules (documented in the README):
 - success: |yaw - target| <= yaw_tolerance while the balance error never exceeded balance_limit;
 - failure: balance error above balance_limit, box off the belts (fell or slid past a belt's end),
-  box tipped beyond tip_limit, or the step cap reached;
+  box tipped beyond tip_limit, or the step cap reached (and, inside jit where no error can be raised, a
+  non-finite action: `invalid_action`);
 - an episode ends at its first success or failure. Failure wins a tie (a step that both reaches the
   target and breaks the balance limit is a failure).
 """
@@ -13,16 +14,20 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from boxjax.config import TaskConfig
-from boxjax.geometry import YAW, balance_error, wrap_angle
+from boxjax.geometry import YAW, balance_error
 
 # Why an episode ended. Integers so they live inside jitted state; names for people.
-RUNNING, SUCCESS, UNBALANCED, OFF_BELTS, TIPPED, STEP_CAP = range(6)
-REASONS = ("running", "success", "unbalanced", "off_belts", "tipped", "step_cap")
+RUNNING, SUCCESS, UNBALANCED, OFF_BELTS, TIPPED, STEP_CAP, INVALID_ACTION = range(7)
+REASONS = ("running", "success", "unbalanced", "off_belts", "tipped", "step_cap", "invalid_action")
 
 
 def yaw_error(s, target_yaw):
-    """Signed yaw error (rad) of the planar state s (5,) to the target, wrapped to [-pi, pi)."""
-    return wrap_angle(s[YAW] - target_yaw)
+    """Signed yaw error (rad) of the planar state s (5,) to the target.
+
+    Not wrapped: the state's yaw is continuous over an episode (see sim.core.planar_state), so turning
+    the wrong way round never reaches the target.
+    """
+    return s[YAW] - target_yaw
 
 
 def reward_pose(s, target_yaw, task: TaskConfig):

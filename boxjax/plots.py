@@ -1,0 +1,102 @@
+"""Plots (matplotlib on an Agg canvas), imported inside the functions so ``import boxjax`` stays cheap.
+
+Figures are built with the object-oriented API (``matplotlib.figure.Figure`` on an Agg canvas), not pyplot, so
+plotting never changes the global backend or leaks open figures.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+from boxjax.config import DEFAULT, BoxConfig
+from boxjax.massdist import MassDistribution, hazard_region, mass_properties
+
+_REGION_LABELS = ("U1", "U2", "U3", "U4")
+
+
+def plot_mass_distribution(
+    ax, dist: MassDistribution, box: BoxConfig = DEFAULT.box, title=None, color="tab:blue"
+):
+    """Draw one distribution's occupied voxels on a 3D axes, in the box frame (cm).
+
+    Args:
+      ax: a matplotlib 3D axes (``fig.add_subplot(projection="3d")``).
+      dist: one distribution (occupancy (nx, ny, nz), total_mass ()).
+      box: the box whose grid the occupancy uses.
+      title: axes title; a short description (mass, hazard) is appended on a second line.
+      color: face colour of the occupied voxels.
+    Returns:
+      ax. The centre of mass is marked with a black dot, and the box outline is drawn as a wire frame.
+    """
+    occ = np.asarray(dist.occupancy) > 0.5
+    edges = [
+        100 * (-h + np.arange(n + 1) * d)
+        for h, n, d in zip(box.half_size, box.grid, box.voxel_size, strict=True)
+    ]
+    x, y, z = np.meshgrid(*edges, indexing="ij")
+    ax.voxels(x, y, z, occ, facecolors=color, edgecolors="k", linewidth=0.3, alpha=0.6)
+
+    hx, hy, hz = (100 * h for h in box.half_size)
+    # Box outline: the 12 edges of the cuboid.
+    for sy in (-hy, hy):
+        for sz in (-hz, hz):
+            ax.plot([-hx, hx], [sy, sy], [sz, sz], color="0.5", lw=0.6)
+    for sx in (-hx, hx):
+        for sz in (-hz, hz):
+            ax.plot([sx, sx], [-hy, hy], [sz, sz], color="0.5", lw=0.6)
+    for sx in (-hx, hx):
+        for sy in (-hy, hy):
+            ax.plot([sx, sx], [sy, sy], [-hz, hz], color="0.5", lw=0.6)
+
+    com = np.round(100 * np.asarray(mass_properties(dist, box).com, np.float64), 1) + 0.0  # no "-0.0"
+    ax.scatter([com[0]], [com[1]], [com[2]], color="k", s=30, depthshade=False, zorder=10)
+    ax.set_xlim(-hx, hx)
+    ax.set_ylim(-hy, hy)
+    ax.set_zlim(-hz, hz)
+    ax.set_box_aspect((2 * hx, 2 * hy, 2 * hz))
+    ax.set_xlabel("x, length (cm)")
+    ax.set_ylabel("y, width (cm)")
+    ax.set_zlabel("z (cm)")
+    region = int(hazard_region(dist, box))
+    sub = f"{float(dist.total_mass):.1f} kg, CoM ({com[0]:+.1f}, {com[1]:+.1f}, {com[2]:+.1f}) cm"
+    if region >= 0:
+        sub += f", hazardous ({_REGION_LABELS[region]})"
+    ax.set_title(sub if title is None else f"{title}\n{sub}", fontsize=9)
+    return ax
+
+
+def plot_mass_distributions(dists: dict[str, MassDistribution], box: BoxConfig, path) -> str:
+    """Write a PNG with one 3D voxel plot per distribution (titled by its key), atomically.
+
+    The figure is saved to a temporary file in the destination directory and moved into place with
+    ``os.replace``, so a reader never sees a half-written PNG. Returns the path written.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not dists:
+        raise ValueError("plot_mass_distributions needs at least one distribution")
+    n = len(dists)
+    ncols = min(n, 3)
+    nrows = -(-n // ncols)
+    fig = Figure(figsize=(4.6 * ncols, 3.9 * nrows), layout="constrained")
+    FigureCanvasAgg(fig)
+    for idx, (name, dist) in enumerate(dists.items()):
+        ax = fig.add_subplot(nrows, ncols, idx + 1, projection="3d")
+        plot_mass_distribution(ax, dist, box, title=str(name), color=f"C{idx % 10}")
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            fig.savefig(f, format="png", dpi=110)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path

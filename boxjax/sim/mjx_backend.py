@@ -1,0 +1,166 @@
+"""MJX backend: the same gripper, jittable, vmappable over boxes and shardable across devices.
+
+Per-box model fields (mass, centre of mass, inertia and MuJoCo's derived constants) travel inside the
+State (`state.model`, a dict of arrays), so `jax.vmap(env.step)` over a batch of states simulates a batch
+of different boxes with no extra `in_axes` bookkeeping. The fields are computed on the host from a native
+model per box after `mj_setConst` (DESIGN.md pitfalls: MJX does not recompute derived constants).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from boxjax import massdist
+from boxjax.config import Config
+from boxjax.sim import core, model
+from boxjax.sim.native import _as_list, recentre_belts
+
+
+def _mjx():
+    from mujoco import mjx  # imported lazily: importing MJX is slow and noisy
+
+    return mjx
+
+
+class MjxEnv:
+    """The gripper on MJX. `init` and `step` are pure and jittable; jit and vmap them from outside.
+
+    reset(key, dist) is a host-side convenience for one box (it computes the box's model fields with
+    native MuJoCo); for batches use `box_params` per box + `stack` + `jax.vmap(env.init)`.
+    """
+
+    backend = "mjx"
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self._template = model.template(cfg)
+        self.ids = model.ids(self._template)
+        self.mx = _mjx().put_model(self._template, impl="jax")
+        self._init_jit = jax.jit(self.init)
+        self._step_jit = jax.jit(self.step)
+
+    # -- host-side helpers -------------------------------------------------------------------------
+    def box_params(self, dist: massdist.MassDistribution) -> dict:
+        """Per-box model fields for `dist` (host-side; validates the distribution)."""
+        return {k: jnp.asarray(v) for k, v in model.box_params(model.box_model(self.cfg, dist)).items()}
+
+    def reset(self, key, dist: massdist.MassDistribution) -> core.State:
+        return self._init_jit(self.box_params(dist), key)
+
+    def step_checked(self, state: core.State, action) -> core.State:
+        """Jitted `step` for one world, with host-side action validation (raises ValueError)."""
+        return self._step_jit(state, jnp.asarray(core.check_action(action), dtype=jnp.float32))
+
+    # -- pure functions ----------------------------------------------------------------------------
+    def _model(self, params: dict):
+        return self.mx.tree_replace(params)
+
+    def init(self, params: dict, key) -> core.State:
+        """Box at rest on the belts (pure; `params` from `box_params`)."""
+        from boxjax.sim.native import initial_qpos
+
+        mjx = _mjx()
+        m = self._model(params)
+        qpos = initial_qpos(self.cfg, self._template, key).astype(jnp.float32)
+        p0 = jnp.asarray(self.cfg.gripper.belt_y0, dtype=jnp.float32)
+        d = mjx.make_data(m)
+        ctrl = d.ctrl.at[model.CARRIAGE1_P].set(p0[0]).at[model.CARRIAGE2_P].set(p0[1])
+        # A strongly typed time: a weakly typed one makes MJX compile the step twice (DESIGN.md).
+        d = d.replace(qpos=qpos, ctrl=ctrl, time=jnp.zeros((), jnp.float32))
+        d = mjx.forward(m, d)
+        yaw0 = core.planar_state(self.ids, d.qpos)[4]
+        target = yaw0 + self.cfg.task.target_yaw_delta
+        obs = core.observe(self.cfg, self.ids, d.qpos, d.qvel, yaw0, 0.0, 0, target, True)
+        return core.State(
+            physics=d,
+            model=params,
+            p_target=p0,
+            target_yaw=target.astype(jnp.float32),
+            t=jnp.zeros((), jnp.int32),
+            clipped=jnp.zeros((), bool),
+            **obs,
+        )
+
+    def physics_step(self, state: core.State, action) -> core.State:
+        """One control step that ignores episode termination (for open-loop data collection)."""
+        mjx = _mjx()
+        m = self._model(state.model)
+        d = state.physics
+        act_speed = d.act[jnp.array([model.BELT1_V, model.BELT2_V])]
+        ctrl, p_target, clipped, valid = core.command(self.cfg, action, act_speed, state.p_target)
+        d = d.replace(ctrl=ctrl.astype(d.ctrl.dtype))
+        d, _ = jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=self.cfg.gripper.n_substeps)
+        d = d.replace(qpos=recentre_belts(self.ids, d.qpos))
+        t = state.t + 1
+        obs = core.observe(
+            self.cfg, self.ids, d.qpos, d.qvel, state.s[4], state.max_balance_error, t, state.target_yaw, valid
+        )
+        return state._replace(physics=d, p_target=p_target.astype(jnp.float32), t=t, clipped=clipped, **obs)
+
+    def step(self, state: core.State, action) -> core.State:
+        """Apply `action` (4,) for one control step; a finished episode stays as it was."""
+        return core.freeze_if_done(state, self.physics_step(state, action))
+
+
+def stack(trees):
+    """Stack a list of pytrees along a new leading axis."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def batch_sharding(n: int):
+    """A NamedSharding that splits a leading batch axis of size n over all devices (None if one device,
+    or if n does not divide evenly)."""
+    devices = jax.devices()
+    if len(devices) < 2 or n % len(devices):
+        return None
+    mesh = Mesh(np.array(devices), ("batch",))
+    return NamedSharding(mesh, PartitionSpec("batch"))
+
+
+@partial(jax.jit, static_argnums=0)
+def _rollout_jit(env: MjxEnv, states: core.State, actions):
+    def one(state, acts):
+        def body(st, a):
+            st2 = env.physics_step(st, a)
+            applied = jnp.concatenate([st2.physics.act[:2], st2.p_target - st.p_target])
+            return st2, dict(s=st2.s, belt_speed=st2.belt_speed, s1=st2.s1, s2=st2.s2, actions=applied,
+                             qpos=st2.physics.qpos, clipped=st2.clipped)
+
+        return jax.lax.scan(body, state, acts)[1]
+
+    return jax.vmap(one)(states, actions)
+
+
+def rollout(cfg: Config, dists, actions, *, env: MjxEnv | None = None, key=None) -> dict:
+    """Open-loop rollouts of many boxes with MJX, vmapped and (with several devices) sharded.
+
+    Same arguments and outputs as `boxjax.sim.native.rollout` (numpy arrays). Task termination is
+    ignored: every world runs all T steps.
+    """
+    env = env or MjxEnv(cfg)
+    dists = _as_list(dists)
+    B = len(dists)
+    acts = np.asarray(actions, dtype=np.float32)
+    if acts.ndim == 2:
+        acts = np.broadcast_to(acts, (B, *acts.shape))
+    if acts.ndim != 3 or acts.shape[0] != B or acts.shape[-1] != 4:
+        raise ValueError(f"actions must have shape (B={B}, T, 4) or (T, 4), got {np.shape(actions)}")
+    if not np.all(np.isfinite(acts)):
+        raise ValueError("actions contain NaN or inf")
+    key = jax.random.PRNGKey(0) if key is None else key
+    params = stack([env.box_params(d) for d in dists])
+    states = jax.vmap(env.init)(params, jax.random.split(key, B))
+    sharding = batch_sharding(B)
+    acts = jnp.asarray(acts)
+    if sharding is not None:
+        states, acts = jax.device_put((states, acts), sharding)
+    out = jax.tree.map(np.asarray, _rollout_jit(env, states, acts))
+    s0 = jax.tree.map(np.asarray, states)
+    first = dict(s=s0.s, belt_speed=s0.belt_speed, s1=s0.s1, s2=s0.s2, qpos=s0.physics.qpos)
+    res = {k: np.concatenate([first[k][:, None], out[k]], axis=1) if k in first else out[k] for k in out}
+    return res
