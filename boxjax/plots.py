@@ -7,11 +7,11 @@ plotting never changes the global backend or leaks open figures.
 from __future__ import annotations
 
 import os
-import tempfile
 
 import numpy as np
 
 from boxjax.config import DEFAULT, BoxConfig
+from boxjax.fileio import save_figure
 from boxjax.massdist import MassDistribution, hazard_region, mass_properties
 
 _REGION_LABELS = ("U1", "U2", "U3", "U4")
@@ -87,16 +87,59 @@ def plot_mass_distributions(dists: dict[str, MassDistribution], box: BoxConfig, 
     for idx, (name, dist) in enumerate(dists.items()):
         ax = fig.add_subplot(nrows, ncols, idx + 1, projection="3d")
         plot_mass_distribution(ax, dist, box, title=str(name), color=f"C{idx % 10}")
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            fig.savefig(f, format="png", dpi=110)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    save_figure(fig, path)
+    return os.fspath(path)
+
+
+def _figure(figsize):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def plot_episode_axes(axes, trace, balance_limit: float, target_yaw: float, title: str | None = None):
+    """Draw an episode on 4 axes: yaw vs target, balance error vs limit, belt speeds, belt positions.
+
+    Args:
+      trace: an `EpisodeTrace` (or anything with time, s (T+1, 5), belt_speed (T+1, 2), actions (T, 4),
+        balance_error (T+1,) attributes).
+    """
+    t = np.asarray(trace.time)
+    s = np.asarray(trace.s)
+    a = np.asarray(trace.actions)
+    ax_yaw, ax_bal, ax_v, ax_p = axes
+    ax_yaw.plot(t, np.degrees(s[:, 4]), label="yaw")
+    ax_yaw.axhline(np.degrees(target_yaw), color="k", ls="--", lw=0.8, label="target")
+    ax_yaw.set_ylabel("yaw (deg)")
+    ax_yaw.legend(loc="best", fontsize=8)
+    ax_bal.plot(t, 100 * np.asarray(trace.balance_error), color="C3", label="|y - (P1+P2)/2|")
+    ax_bal.axhline(100 * balance_limit, color="r", ls="--", lw=0.8, label="limit")
+    ax_bal.set_ylabel("balance error (cm)")
+    ax_bal.legend(loc="best", fontsize=8)
+    ta = t[1:] if len(t) > 1 else t
+    for i, c in enumerate(("C0", "C1")):
+        ax_v.plot(t, np.asarray(trace.belt_speed)[:, i], color=c, label=f"belt {i + 1} speed")
+        if len(a):
+            ax_v.step(ta, a[:, i], where="pre", color=c, ls=":", label=f"v{i + 1} command")
+    ax_v.set_ylabel("belt speed (m/s)")
+    ax_v.legend(loc="best", fontsize=7, ncol=2)
+    ax_p.plot(t, 100 * s[:, 0], label="P1")
+    ax_p.plot(t, 100 * s[:, 1], label="P2")
+    ax_p.plot(t, 100 * s[:, 3], label="box y", color="C3")
+    ax_p.plot(t, 100 * s[:, 2], label="box x", color="C2", ls="--")
+    ax_p.set_ylabel("position (cm)")
+    ax_p.set_xlabel("time (s)")
+    ax_p.legend(loc="best", fontsize=8)
+    if title:
+        ax_yaw.set_title(title, fontsize=10)
+
+
+def plot_episode(trace, path, balance_limit: float, target_yaw: float, title: str | None = None) -> str:
+    """Write a PNG of one episode (yaw, balance error, belt commands and speeds, belt positions)."""
+    fig = _figure((7.5, 8.5))
+    axes = fig.subplots(4, 1, sharex=True)
+    plot_episode_axes(axes, trace, balance_limit, target_yaw, title)
+    return save_figure(fig, path)

@@ -71,8 +71,8 @@ class MjxEnv:
         d = mjx.make_data(m)
         ctrl = d.ctrl.at[model.CARRIAGE1_P].set(p0[0]).at[model.CARRIAGE2_P].set(p0[1])
         # A strongly typed time: a weakly typed one makes MJX compile the step twice (DESIGN.md).
+        # No mjx.forward here: the observation needs only qpos / qvel, and every step runs forward itself.
         d = d.replace(qpos=qpos, ctrl=ctrl, time=jnp.zeros((), jnp.float32))
-        d = mjx.forward(m, d)
         yaw0 = core.planar_state(self.ids, d.qpos)[4]
         target = yaw0 + self.cfg.task.target_yaw_delta
         obs = core.observe(self.cfg, self.ids, d.qpos, d.qvel, yaw0, 0.0, 0, target, True)

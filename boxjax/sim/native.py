@@ -88,10 +88,11 @@ class NativeEnv:
 
 def initial_qpos(cfg: Config, m: mujoco.MjModel, key) -> jnp.ndarray:
     """Resting pose, with the task's optional initial-pose noise drawn from `key`."""
-    q = jnp.asarray(model.initial_qpos(cfg, m))
+    q = model.initial_qpos(cfg, m)  # float64: native MuJoCo starts exactly where the rollouts start
     t = cfg.task
     if t.init_xy_noise == 0 and t.init_yaw_noise == 0:
         return q
+    q = jnp.asarray(q)
     key_xy, key_yaw = jax.random.split(key)
     # x, y of the box centre ~ U(-init_xy_noise, init_xy_noise) m each; yaw ~ U(-init_yaw_noise, ...) rad.
     dxy = jax.random.uniform(key_xy, (2,), minval=-t.init_xy_noise, maxval=t.init_xy_noise)

@@ -1,0 +1,132 @@
+"""The `boxjax` command line.
+
+    boxjax simulate --distribution D --policy naive --steps 300 [--backend native|mjx] [--plot f.png] [--json]
+    boxjax demo
+
+With --json the last line printed is one JSON object (the summary); everything else goes before it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+# MJX probes for optional GPU backends at import and prints noise on CPU-only machines.
+os.environ.setdefault("MUJOCO_MJX_QUIET", "1")
+
+
+def _emit(summary: dict, as_json: bool):
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    else:
+        for k, v in summary.items():
+            sys.stdout.write(f"  {k:>22}: {v}\n")
+    sys.stdout.flush()
+
+
+def cmd_simulate(args) -> dict:
+    import jax
+
+    from boxjax import massdist
+    from boxjax.config import DEFAULT
+    from boxjax.sim import make_env
+    from boxjax.sim.episode import naive_policy, random_policy, run_episode
+
+    cfg = DEFAULT
+    if args.steps < 1:
+        raise SystemExit("--steps must be >= 1")
+    dist = massdist.named(args.distribution, cfg.box)
+    key = jax.random.PRNGKey(args.seed)
+    key_reset, key_run = jax.random.split(key)
+    t0 = time.perf_counter()
+    env = make_env(cfg, args.backend)
+    state = env.reset(key_reset, dist)
+    if args.policy == "naive":
+        if not 0 < args.speed <= cfg.gripper.belt_speed_limit:
+            raise SystemExit(
+                f"--speed {args.speed} m/s is beyond the belt speed limit {cfg.gripper.belt_speed_limit} m/s"
+            )
+        policy = naive_policy(args.speed)
+    else:
+        policy = random_policy(cfg)
+    state, trace = run_episode(env, state, policy, key_run, args.steps)
+    wall = time.perf_counter() - t0
+    summary = {
+        "command": "simulate",
+        "distribution": args.distribution,
+        "policy": args.policy,
+        "backend": args.backend,
+        "seed": args.seed,
+        **state.summary(),
+        "any_action_clipped": bool(trace.clipped.any()),
+        "simulated_s": float(trace.time[-1]),
+        "wall_s": wall,
+        "episode_wall_s": trace.wall_s,
+    }
+    if not args.json:
+        sys.stdout.write(f"{args.distribution}: {massdist.describe(dist, cfg.box)}\n")
+    if args.plot:
+        from boxjax.plots import plot_episode
+
+        title = f"distribution {args.distribution}, policy {args.policy}, {args.backend}"
+        summary["plot"] = plot_episode(trace, args.plot, cfg.task.balance_limit, float(state.target_yaw), title)
+    return summary
+
+
+def cmd_demo(args) -> dict:
+    """Until the controller exists: the naive rotation on `uniform` and `D`, side by side."""
+    out = {}
+    for name in ("uniform", "D"):
+        ns = argparse.Namespace(
+            distribution=name, policy="naive", steps=300, backend="native", seed=0, speed=0.15,
+            plot=None, json=args.json,
+        )
+        res = cmd_simulate(ns)
+        out[name] = res
+        if not args.json:
+            sys.stdout.write(f"\n== naive rotation, distribution {name} ==\n")
+            _emit(res, False)
+    return {"command": "demo", "results": out}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from boxjax.massdist import NAMES
+    from boxjax.sim import BACKENDS
+
+    p = argparse.ArgumentParser(prog="boxjax", description="Safe box rotation on a two-belt gripper.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("simulate", help="run the simulator with a simple policy")
+    s.add_argument("--distribution", choices=NAMES, default="uniform")
+    s.add_argument("--policy", choices=("naive", "random"), default="naive")
+    s.add_argument("--steps", type=int, default=300, help="control steps (0.05 s each)")
+    s.add_argument("--backend", choices=BACKENDS, default="native")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--speed", type=float, default=0.15, help="naive policy belt speed (m/s)")
+    s.add_argument("--plot", help="write yaw / balance / belt commands to this PNG")
+    s.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    s.set_defaults(func=cmd_simulate)
+
+    d = sub.add_parser("demo", help="what `make demo` runs")
+    d.add_argument("--json", action="store_true")
+    d.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        summary = args.func(args)
+    except (ValueError, FileNotFoundError) as e:  # bad input: say what, no traceback
+        sys.stderr.write(f"boxjax {args.command}: error: {e}\n")
+        return 2
+    if args.command != "demo" or args.json:
+        _emit(summary, args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
