@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
 
 import jax
@@ -23,7 +24,7 @@ from mujoco import rollout as mj_rollout
 from boxjax import massdist
 from boxjax.config import DEFAULT
 from boxjax.sim import model
-from boxjax.sim.mjx_backend import MjxEnv, stack
+from boxjax.sim.mjx_backend import MjxEnv
 
 ROTATE = np.array([0.15, -0.15, 0.0, 0.0])
 
@@ -82,6 +83,11 @@ def mjx_batch(env: MjxEnv, params, batch: int, n_control: int, repeats: int) -> 
     return {"batch": batch, "compile_s": first - med, "run_s": med, "world_steps_per_s": steps / med}
 
 
+def _log(msg: str):
+    sys.stderr.write(f"[sim_throughput] {msg}\n")
+    sys.stderr.flush()
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 512, 2048])
@@ -90,15 +96,19 @@ def main():
     cfg, dist = DEFAULT, massdist.named("A")
     reps = 2 if args.quick else 5
     out = {"benchmark": "sim_throughput", "machine": machine(), "physics_timestep_s": cfg.gripper.timestep}
+    _log("native single thread")
     out["native_steps_per_s_1thread"] = native_single(cfg, dist, 2000 if args.quick else 20000, reps)
+    _log("native mujoco.rollout")
     out["native_rollout_world_steps_per_s"] = native_rollout(cfg, dist, 64, 250 if args.quick else 1000, reps)
     out["native_rollout_threads"] = os.cpu_count()
     env = MjxEnv(cfg)
     params = env.box_params(dist)
     out["mjx"] = []
     for b in args.batches:
-        n_control = 2 if args.quick else (20 if b <= 64 else 4)
-        out["mjx"].append(mjx_batch(env, params, b, n_control, reps))
+        # about the same number of world-steps per timed call at every batch size (>= 50k when b >= 64)
+        n_control = 1 if args.quick else max(1, min(40, 2048 // max(b, 1)))
+        _log(f"mjx batch {b}: {n_control} control steps per call")
+        out["mjx"].append(mjx_batch(env, params, b, n_control, min(reps, 3)))
     best = max(r["world_steps_per_s"] for r in out["mjx"])
     out["mjx_best_world_steps_per_s"] = best
     out["ratio_mjx_best_over_native_1thread"] = best / out["native_steps_per_s_1thread"]
@@ -107,5 +117,4 @@ def main():
 
 
 if __name__ == "__main__":
-    del stack
     main()

@@ -10,12 +10,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
-
-# MJX probes for optional GPU backends at import and prints noise on CPU-only machines.
-os.environ.setdefault("MUJOCO_MJX_QUIET", "1")
 
 
 def _emit(summary: dict, as_json: bool):
@@ -72,7 +68,9 @@ def cmd_simulate(args) -> dict:
         from boxjax.plots import plot_episode
 
         title = f"distribution {args.distribution}, policy {args.policy}, {args.backend}"
-        summary["plot"] = plot_episode(trace, args.plot, cfg.task.balance_limit, float(state.target_yaw), title)
+        summary["plot"] = plot_episode(
+            trace, args.plot, cfg.task.balance_limit, float(state.target_yaw), title
+        )
     return summary
 
 
@@ -81,8 +79,14 @@ def cmd_demo(args) -> dict:
     out = {}
     for name in ("uniform", "D"):
         ns = argparse.Namespace(
-            distribution=name, policy="naive", steps=300, backend="native", seed=0, speed=0.15,
-            plot=None, json=args.json,
+            distribution=name,
+            policy="naive",
+            steps=300,
+            backend="native",
+            seed=0,
+            speed=0.15,
+            plot=None,
+            json=args.json,
         )
         res = cmd_simulate(ns)
         out[name] = res

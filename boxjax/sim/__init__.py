@@ -21,4 +21,13 @@ def make_env(cfg=None, backend: str = "native"):
     raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
 
 
-__all__ = ["ACTION_NAMES", "ACTION_UNITS", "BACKENDS", "State", "check_action", "box_model", "make_env", "mjcf"]
+__all__ = [
+    "ACTION_NAMES",
+    "ACTION_UNITS",
+    "BACKENDS",
+    "State",
+    "check_action",
+    "box_model",
+    "make_env",
+    "mjcf",
+]

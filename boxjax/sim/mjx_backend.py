@@ -8,7 +8,9 @@ model per box after `mj_setConst` (DESIGN.md pitfalls: MJX does not recompute de
 
 from __future__ import annotations
 
-from functools import partial
+import contextlib
+import io
+from functools import lru_cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -22,8 +24,10 @@ from boxjax.sim.native import _as_list, recentre_belts
 
 
 def _mjx():
-    from mujoco import mjx  # imported lazily: importing MJX is slow and noisy
-
+    """mujoco.mjx, imported on first use (it is slow to import). Its optional-Warp probe prints
+    "Failed to import warp" to stdout on machines without Warp; that is not an error, so we hide it."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        from mujoco import mjx
     return mjx
 
 
@@ -98,13 +102,27 @@ class MjxEnv:
         d = d.replace(qpos=recentre_belts(self.ids, d.qpos))
         t = state.t + 1
         obs = core.observe(
-            self.cfg, self.ids, d.qpos, d.qvel, state.s[4], state.max_balance_error, t, state.target_yaw, valid
+            self.cfg,
+            self.ids,
+            d.qpos,
+            d.qvel,
+            state.s[4],
+            state.max_balance_error,
+            t,
+            state.target_yaw,
+            valid,
         )
         return state._replace(physics=d, p_target=p_target.astype(jnp.float32), t=t, clipped=clipped, **obs)
 
     def step(self, state: core.State, action) -> core.State:
         """Apply `action` (4,) for one control step; a finished episode stays as it was."""
         return core.freeze_if_done(state, self.physics_step(state, action))
+
+
+@lru_cache(maxsize=4)
+def env_for(cfg: Config) -> MjxEnv:
+    """One MjxEnv per config, so that jitted functions keyed on the env compile once per config."""
+    return MjxEnv(cfg)
 
 
 def stack(trees):
@@ -128,8 +146,15 @@ def _rollout_jit(env: MjxEnv, states: core.State, actions):
         def body(st, a):
             st2 = env.physics_step(st, a)
             applied = jnp.concatenate([st2.physics.act[:2], st2.p_target - st.p_target])
-            return st2, dict(s=st2.s, belt_speed=st2.belt_speed, s1=st2.s1, s2=st2.s2, actions=applied,
-                             qpos=st2.physics.qpos, clipped=st2.clipped)
+            return st2, dict(
+                s=st2.s,
+                belt_speed=st2.belt_speed,
+                s1=st2.s1,
+                s2=st2.s2,
+                actions=applied,
+                qpos=st2.physics.qpos,
+                clipped=st2.clipped,
+            )
 
         return jax.lax.scan(body, state, acts)[1]
 
@@ -142,7 +167,7 @@ def rollout(cfg: Config, dists, actions, *, env: MjxEnv | None = None, key=None)
     Same arguments and outputs as `boxjax.sim.native.rollout` (numpy arrays). Task termination is
     ignored: every world runs all T steps.
     """
-    env = env or MjxEnv(cfg)
+    env = env or env_for(cfg)
     dists = _as_list(dists)
     B = len(dists)
     acts = np.asarray(actions, dtype=np.float32)

@@ -46,7 +46,7 @@ def mjcf(cfg: Config) -> str:
     bl, bw, bt = g.belt_length / 2, g.belt_width / 2, g.belt_thickness / 2
     vmax, amax = g.belt_speed_limit, g.belt_accel_limit
     carriages = []
-    for i, (rng, y0) in enumerate(((g.p1_range, g.belt_y0[0]), (g.p2_range, g.belt_y0[1])), start=1):
+    for i, rng in enumerate((g.p1_range, g.p2_range), start=1):
         carriages.append(f"""
     <body name="carriage{i}" pos="0 0 {-bt}">
       <joint name="carriage{i}_y" type="slide" axis="0 1 0" range="{rng[0]} {rng[1]}" ref="0"/>
@@ -69,12 +69,21 @@ def mjcf(cfg: Config) -> str:
             f'<position name="carriage{i}_p" joint="carriage{i}_y" kp="{CARRIAGE_KP}" kv="{CARRIAGE_KV}" '
             f'ctrlrange="{rng[0]} {rng[1]}"/>'
         )
+    # The box touches only the belts, through explicit pairs: they can carry a friction reference
+    # (solreffriction, used by MuJoCo with the elliptic cone only) that geoms cannot.
+    mu = g.friction
+    srf = f' solreffriction="{g.friction_timeconst} 1"' if g.friction_timeconst > 0 else ""
+    pairs = "".join(
+        f'\n    <pair geom1="box" geom2="belt{i}" condim="3" friction="{mu} {mu} 0.005 0.0001 0.0001"{srf}/>'
+        for i in (1, 2)
+    )
     # The placeholder box inertial is deliberately off-centre and rotated: a box compiled with its centre
     # of mass at the geometric centre gets body_sameframe = 1, and native MuJoCo then silently ignores a
     # later change of body_ipos / body_iquat (DESIGN.md pitfalls). Every real box overwrites these values.
     return f"""<mujoco model="boxjax_gripper">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{g.timestep}" integrator="implicitfast" gravity="0 0 {-g.gravity}" cone="pyramidal"/>
+  <option timestep="{g.timestep}" integrator="implicitfast" gravity="0 0 {-g.gravity}"
+          cone="{g.contact_cone}"/>
   <default>
     <geom friction="{g.friction} 0.005 0.0001" condim="3"/>
   </default>
@@ -83,9 +92,11 @@ def mjcf(cfg: Config) -> str:
     <body name="box" pos="0 0 {hh}">
       <freejoint name="box"/>
       <inertial pos="0.01 0.01 0.005" quat="0.9 0.1 0.1 0.1" mass="1" diaginertia="0.01 0.02 0.03"/>
-      <geom name="box" type="box" size="{hl} {hw} {hh}" contype="1" conaffinity="1" rgba="0.8 0.6 0.3 1"/>
+      <geom name="box" type="box" size="{hl} {hw} {hh}" contype="0" conaffinity="0" rgba="0.8 0.6 0.3 1"/>
     </body>
   </worldbody>
+  <contact>{pairs}
+  </contact>
   <actuator>
     {chr(10).join("    " + a for a in actuators).strip()}
   </actuator>

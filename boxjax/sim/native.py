@@ -74,9 +74,7 @@ class NativeEnv:
         mujoco.mj_step(m, d, nstep=self.cfg.gripper.n_substeps)
         recentre_belts(self.ids, d.qpos)
         t = state.t + 1
-        obs = self._observe(
-            d.qpos, d.qvel, state.s[4], state.max_balance_error, t, state.target_yaw, valid
-        )
+        obs = self._observe(d.qpos, d.qvel, state.s[4], state.max_balance_error, t, state.target_yaw, valid)
         return state._replace(
             physics=_get_state(m, d),
             p_target=np.asarray(p_target),
@@ -211,7 +209,9 @@ def _as_list(dists) -> list[massdist.MassDistribution]:
         occ = np.asarray(dists.occupancy)
         if occ.ndim == 3:
             return [dists]
-        return [massdist.MassDistribution(o, m) for o, m in zip(occ, np.asarray(dists.total_mass), strict=True)]
+        return [
+            massdist.MassDistribution(o, m) for o, m in zip(occ, np.asarray(dists.total_mass), strict=True)
+        ]
     return list(dists)
 
 
