@@ -24,7 +24,7 @@ from mujoco import rollout as mj_rollout
 from boxjax import massdist
 from boxjax.config import DEFAULT
 from boxjax.sim import model
-from boxjax.sim.mjx_backend import MjxEnv
+from boxjax.sim.mjx_backend import MjxEnv, chunked_vmap, default_chunk
 
 ROTATE = np.array([0.15, -0.15, 0.0, 0.0])
 
@@ -71,16 +71,24 @@ def mjx_batch(env: MjxEnv, params, batch: int, n_control: int, repeats: int) -> 
     states = jax.jit(jax.vmap(env.init))(p, jax.random.split(jax.random.PRNGKey(0), batch))
     acts = jnp.broadcast_to(jnp.asarray(ROTATE, jnp.float32), (batch, n_control, 4))
 
+    chunk = default_chunk() if batch > (default_chunk() or batch) else None
+
     @jax.jit
     def run(states, acts):
         def one(s, a):
             return jax.lax.scan(lambda s, a: (env.step(s, a), None), s, a)[0]
 
-        return jax.vmap(one)(states, acts).s
+        return chunked_vmap(one, chunk)(states, acts).s
 
     first, med, _ = timed(run, states, acts, repeats=repeats)
     steps = batch * n_control * env.cfg.gripper.n_substeps
-    return {"batch": batch, "compile_s": first - med, "run_s": med, "world_steps_per_s": steps / med}
+    return {
+        "batch": batch,
+        "vmap_chunk": chunk,
+        "compile_s": first - med,
+        "run_s": med,
+        "world_steps_per_s": steps / med,
+    }
 
 
 def _log(msg: str):

@@ -74,6 +74,44 @@ def cmd_simulate(args) -> dict:
     return summary
 
 
+def cmd_rotate(args) -> dict:
+    import jax
+
+    from boxjax import massdist
+    from boxjax.config import DEFAULT
+    from boxjax.controller import ControllerConfig, run_episode
+
+    cfg = DEFAULT
+    dist = massdist.named(args.distribution, cfg.box)
+    estimator = "oracle"
+    if args.estimator == "learned":
+        from boxjax.estimator_pipeline import learned_estimator
+
+        estimator = learned_estimator(cfg, args.weights)
+    ctrl = ControllerConfig(rule=args.rule, n_samples=args.samples, horizon=args.horizon)
+    res = run_episode(cfg, dist, jax.random.PRNGKey(args.seed), estimator=estimator, ctrl=ctrl,
+                      backend=args.backend)
+    summary = {
+        "command": "rotate",
+        "distribution": args.distribution,
+        "estimator": args.estimator,
+        "backend": args.backend,
+        "seed": args.seed,
+        **res.summary,
+    }
+    if not args.json:
+        sys.stdout.write(f"{args.distribution}: {massdist.describe(dist, cfg.box)}\n")
+        if res.summary["aborted"]:
+            sys.stdout.write(res.summary["abort_reason"] + "\n")
+    if args.plot:
+        from boxjax.plots import plot_episode
+
+        title = f"rotate {args.distribution} ({args.estimator}), seed {args.seed}"
+        target = float(res.trace.s[0, 4]) + cfg.task.target_yaw_delta
+        summary["plot"] = plot_episode(res.trace, args.plot, cfg.task.balance_limit, target, title)
+    return summary
+
+
 def cmd_demo(args) -> dict:
     """Until the controller exists: the naive rotation on `uniform` and `D`, side by side."""
     out = {}
@@ -113,6 +151,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--plot", help="write yaw / balance / belt commands to this PNG")
     s.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     s.set_defaults(func=cmd_simulate)
+
+    r = sub.add_parser("rotate", help="explore, estimate, then refuse or turn the box with the MPC")
+    r.add_argument("--distribution", choices=NAMES, default="A")
+    r.add_argument("--estimator", choices=("oracle", "learned"), default="oracle")
+    r.add_argument("--weights", help="estimator checkpoint (default: the one shipped with boxjax)")
+    r.add_argument("--backend", choices=BACKENDS, default="native")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--rule", default="random", help="Pareto-front selection rule (planner.RULES)")
+    r.add_argument("--samples", type=int, default=50, help="actions scored per control step")
+    r.add_argument("--horizon", type=int, default=1, help="prediction steps per candidate")
+    r.add_argument("--plot", help="write yaw / balance / belts over the episode to this PNG")
+    r.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    r.set_defaults(func=cmd_rotate)
 
     d = sub.add_parser("demo", help="what `make demo` runs")
     d.add_argument("--json", action="store_true")

@@ -140,8 +140,42 @@ def batch_sharding(n: int):
     return NamedSharding(mesh, PartitionSpec("batch"))
 
 
-@partial(jax.jit, static_argnums=0)
-def _rollout_jit(env: MjxEnv, states: core.State, actions):
+# On CPU, jaxlib's batched LAPACK Cholesky (which MJX calls for the mass matrix, the implicit integrator
+# and the Newton solver) splits large batches over its thread pool and can hang forever (seen with
+# jax 0.10.2 from 768 worlds up on 2 cores: every thread parked in ParallelBatchMap / BlockingCounter).
+# Vmapping at most CPU_CHUNK worlds at a time, with lax.map over the chunks, avoids it.
+CPU_CHUNK = 256
+
+
+def default_chunk() -> int | None:
+    """Worlds vmapped at once: CPU_CHUNK on CPU, all of them on accelerators."""
+    return CPU_CHUNK if jax.default_backend() == "cpu" else None
+
+
+def chunked_vmap(fn, chunk: int | None = None):
+    """jax.vmap(fn) over the leading axis, evaluated `chunk` worlds at a time (lax.map over chunks).
+
+    The batch size must be a multiple of `chunk` when it is larger (pad it, see `rollout`).
+    """
+    vfn = jax.vmap(fn)
+    if chunk is None:
+        return vfn
+
+    def run(*args):
+        b = jax.tree.leaves(args)[0].shape[0]
+        if b <= chunk:
+            return vfn(*args)
+        if b % chunk:
+            raise ValueError(f"batch {b} is not a multiple of the chunk size {chunk}")
+        split = lambda x: x.reshape(b // chunk, chunk, *x.shape[1:])  # noqa: E731
+        out = jax.lax.map(lambda a: vfn(*a), jax.tree.map(split, args))
+        return jax.tree.map(lambda x: x.reshape(b, *x.shape[2:]), out)
+
+    return run
+
+
+@partial(jax.jit, static_argnums=(0, 3))
+def _rollout_jit(env: MjxEnv, states: core.State, actions, chunk):
     def one(state, acts):
         def body(st, a):
             st2 = env.physics_step(st, a)
@@ -158,7 +192,7 @@ def _rollout_jit(env: MjxEnv, states: core.State, actions):
 
         return jax.lax.scan(body, state, acts)[1]
 
-    return jax.vmap(one)(states, actions)
+    return chunked_vmap(one, chunk)(states, actions)
 
 
 def rollout(cfg: Config, dists, actions, *, env: MjxEnv | None = None, key=None) -> dict:
@@ -178,14 +212,24 @@ def rollout(cfg: Config, dists, actions, *, env: MjxEnv | None = None, key=None)
     if not np.all(np.isfinite(acts)):
         raise ValueError("actions contain NaN or inf")
     key = jax.random.PRNGKey(0) if key is None else key
+    # Pad the batch (repeating the last box) to equal shares per device, each a multiple of the chunk.
+    n_dev, chunk = jax.device_count(), default_chunk()
+    per_dev = -(-B // n_dev)
+    if chunk is not None and per_dev > chunk:
+        per_dev = -(-per_dev // chunk) * chunk
+    else:
+        chunk = None
+    Bp = per_dev * n_dev
+    dists = dists + [dists[-1]] * (Bp - B)
+    acts = np.concatenate([acts, np.repeat(acts[-1:], Bp - B, axis=0)])
     params = stack([env.box_params(d) for d in dists])
-    states = jax.vmap(env.init)(params, jax.random.split(key, B))
-    sharding = batch_sharding(B)
+    states = jax.vmap(env.init)(params, jax.random.split(key, Bp))
+    sharding = batch_sharding(Bp)
     acts = jnp.asarray(acts)
     if sharding is not None:
         states, acts = jax.device_put((states, acts), sharding)
-    out = jax.tree.map(np.asarray, _rollout_jit(env, states, acts))
-    s0 = jax.tree.map(np.asarray, states)
+    out = jax.tree.map(lambda x: np.asarray(x)[:B], _rollout_jit(env, states, acts, chunk))
+    s0 = jax.tree.map(lambda x: np.asarray(x)[:B], states)
     first = dict(s=s0.s, belt_speed=s0.belt_speed, s1=s0.s1, s2=s0.s2, qpos=s0.physics.qpos)
     res = {k: np.concatenate([first[k][:, None], out[k]], axis=1) if k in first else out[k] for k in out}
     return res

@@ -1,0 +1,170 @@
+"""One controlled episode: explore -> estimate -> refuse if hazardous -> plan and act until done.
+
+The estimator is a slot: "oracle" (the true mass distribution, issue 3) or a trained H (issue 4). Either
+way the controller believes in ONE mass distribution after the exploration phase, checks it against the
+paper's hazard rule (§4.2) and either refuses, saying why in physical terms, or turns the box with the
+physics-prior random-shooting MPC (`planner`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from functools import lru_cache
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from boxjax import massdist, planner, prior, task
+from boxjax.config import Config
+from boxjax.sim import make_env
+from boxjax.sim.episode import EpisodeTrace
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerConfig:
+    """How the MPC plans (paper §2.3, §4 defaults)."""
+
+    n_samples: int = 50  # actions scored per control step (paper N_a = 50)
+    rule: str = "random"  # selection on the Pareto front (planner.RULES); the paper picks at random
+    velocity: str = "increment"  # how the action set's velocity columns are read (planner.VELOCITY_MODES)
+    horizon: int = 1  # prediction steps per candidate (1 = the paper's one-step prediction)
+    variant: str = "slip"  # physics prior (prior.VARIANTS)
+    explore: bool = True  # run the fixed exploration phase first (always needed by a learned estimator)
+
+
+class EpisodeResult(NamedTuple):
+    """What a controlled episode did. `summary` is plain data (the CLI's JSON)."""
+
+    summary: dict
+    trace: EpisodeTrace
+    belief: massdist.MassDistribution
+    truth: massdist.MassDistribution
+    plan_ms: np.ndarray  # (n_plans,) wall milliseconds per planning call (after the first)
+
+
+def hazard_explanation(belief: massdist.MassDistribution, cfg: Config) -> str | None:
+    """None if the believed distribution is safe to turn; else why not, in terms a person understands."""
+    if not bool(massdist.is_hazardous(belief, cfg.box)):
+        return None
+    return (
+        "refusing to rotate: the estimated mass distribution is hazardous (paper §4.2). "
+        + massdist.describe(belief, cfg.box)
+    )
+
+
+@lru_cache(maxsize=8)
+def _planner(cfg: Config, ctrl: ControllerConfig):
+    return planner.make_planner(
+        cfg, n_samples=ctrl.n_samples, rule=ctrl.rule, velocity=ctrl.velocity, horizon=ctrl.horizon
+    )
+
+
+def run_episode(
+    cfg: Config,
+    truth: massdist.MassDistribution,
+    key,
+    *,
+    estimator: Any = "oracle",
+    ctrl: ControllerConfig = ControllerConfig(),
+    backend: str = "native",
+    force_map=None,
+    max_steps: int | None = None,
+) -> EpisodeResult:
+    """Explore, estimate, then refuse or rotate the box `truth` (which the controller never sees, except
+    through the oracle estimator).
+
+    Args:
+      estimator: "oracle", or a callable(exploration dict) -> MassDistribution (the learned H).
+      force_map: calibrate.ForceMap, needed by the "paper" prior variant.
+      max_steps: control-step cap (default cfg.task.max_steps), exploration included.
+    """
+    from boxjax import explore
+
+    key_reset, key_plan = jax.random.split(key)
+    max_steps = cfg.task.max_steps if max_steps is None else max_steps
+    t_start = time.perf_counter()
+    env = make_env(cfg, backend)
+    step = env.step_checked if hasattr(env, "step_checked") else env.step
+    state = env.reset(key_reset, truth)
+    rows, actions = [state], []
+
+    def act(state, a):
+        state = step(state, a)
+        rows.append(state)
+        actions.append(np.asarray(a, dtype=np.float64))
+        return state
+
+    # 1. exploration (paper §2.2): a fixed open-loop sequence
+    n_explore = 0
+    if ctrl.explore:
+        for a in explore.exploration_actions(cfg):
+            if bool(state.done):
+                break
+            state = act(state, a)
+        n_explore = len(actions)
+    exploration = {
+        "s": np.stack([np.asarray(r.s) for r in rows]),
+        "belt_speed": np.stack([np.asarray(r.belt_speed) for r in rows]),
+        "actions": np.asarray(actions).reshape(-1, 4),
+    }
+
+    # 2. the belief
+    belief = truth if estimator == "oracle" else estimator(exploration)
+    belief = massdist.validate(belief, cfg.box)
+
+    # 3. refuse when hazardous
+    why = hazard_explanation(belief, cfg)
+    plan_ms: list[float] = []
+    if why is None and not bool(state.done):
+        # 4. physics-prior MPC
+        model = prior.make_prior(
+            massdist.voxel_masses(belief, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
+        )
+        plan = _planner(cfg, ctrl)
+        window = list(exploration["s"][-prior.MIN_WINDOW :])
+        while len(window) < prior.MIN_WINDOW:
+            window.insert(0, window[0])
+        while not bool(state.done) and len(actions) < max_steps:
+            key_plan, key_step = jax.random.split(key_plan)
+            w = prior.check_window(np.asarray(window[-prior.MIN_WINDOW :]))
+            t0 = time.perf_counter()
+            a, _ = plan(key_step, model, w, np.asarray(state.belt_speed, np.float32), state.target_yaw)
+            a = np.asarray(a, dtype=np.float64)
+            plan_ms.append(1e3 * (time.perf_counter() - t0))
+            if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
+                raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
+            state = act(state, a)
+            window.append(np.asarray(state.s))
+    wall = time.perf_counter() - t_start
+
+    trace = EpisodeTrace(
+        time=np.arange(len(rows)) * cfg.gripper.control_dt,
+        s=np.stack([np.asarray(r.s) for r in rows]),
+        belt_speed=np.stack([np.asarray(r.belt_speed) for r in rows]),
+        actions=np.asarray(actions).reshape(-1, 4),
+        balance_error=np.asarray([float(r.balance_error) for r in rows]),
+        clipped=np.asarray([bool(r.clipped) for r in rows[1:]], dtype=bool),
+        wall_s=wall,
+    )
+    aborted = why is not None
+    s = state.summary()
+    timed = plan_ms[1:] if len(plan_ms) > 1 else plan_ms  # the first call compiles
+    summary = {
+        "success": bool(s["success"]) and not aborted,
+        "aborted": aborted,
+        "abort_reason": why,
+        "failed_reason": None if aborted else s["failed_reason"],
+        "steps": s["steps"],
+        "exploration_steps": n_explore,
+        "max_balance_error_m": s["max_balance_error_m"],
+        "final_yaw_error_rad": s["final_yaw_error_rad"],
+        "wall_s": wall,
+        "plan_ms_median": statistics.median(timed) if timed else None,
+        "truth_hazardous": bool(massdist.is_hazardous(truth, cfg.box)),
+    }
+    if not aborted and not s["done"]:
+        summary["failed_reason"] = task.REASONS[task.STEP_CAP]
+    return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))
