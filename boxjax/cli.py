@@ -89,8 +89,9 @@ def cmd_rotate(args) -> dict:
 
         estimator = learned_estimator(cfg, args.weights)
     ctrl = ControllerConfig(rule=args.rule, n_samples=args.samples, horizon=args.horizon)
-    res = run_episode(cfg, dist, jax.random.PRNGKey(args.seed), estimator=estimator, ctrl=ctrl,
-                      backend=args.backend)
+    res = run_episode(
+        cfg, dist, jax.random.PRNGKey(args.seed), estimator=estimator, ctrl=ctrl, backend=args.backend
+    )
     summary = {
         "command": "rotate",
         "distribution": args.distribution,
