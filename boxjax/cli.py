@@ -1,7 +1,8 @@
 """The `boxjax` command line.
 
     boxjax simulate --distribution D --policy naive --steps 300 [--backend native|mjx] [--plot f.png] [--json]
-    boxjax demo
+    boxjax rotate --distribution C --estimator oracle|learned [--seed S] [--plot f.png] [--json]
+    boxjax demo [--distribution A|B|C|D|uniform] [--plot boxjax_demo.png] [--json]
 
 With --json the last line printed is one JSON object (the summary); everything else goes before it.
 """
@@ -85,7 +86,7 @@ def cmd_rotate(args) -> dict:
     dist = massdist.named(args.distribution, cfg.box)
     estimator = "oracle"
     if args.estimator == "learned":
-        from boxjax.estimator_pipeline import learned_estimator
+        from boxjax.controller import learned_estimator
 
         estimator = learned_estimator(cfg, args.weights)
     ctrl = ControllerConfig(rule=args.rule, n_samples=args.samples, horizon=args.horizon)
@@ -114,25 +115,55 @@ def cmd_rotate(args) -> dict:
 
 
 def cmd_demo(args) -> dict:
-    """Until the controller exists: the naive rotation on `uniform` and `D`, side by side."""
-    out = {}
-    for name in ("uniform", "D"):
-        ns = argparse.Namespace(
-            distribution=name,
-            policy="naive",
-            steps=300,
-            backend="native",
-            seed=0,
-            speed=0.15,
-            plot=None,
-            json=args.json,
+    """The whole pipeline on one box: explore, estimate with the shipped H, refuse or rotate, plot."""
+    import jax
+
+    from boxjax import massdist
+    from boxjax.config import DEFAULT
+    from boxjax.controller import learned_estimator, run_episode
+
+    cfg = DEFAULT
+    t0 = time.perf_counter()
+    truth = massdist.named(args.distribution, cfg.box)
+    say = (lambda msg: None) if args.json else (lambda msg: sys.stdout.write(msg + "\n"))
+    say(f"box {args.distribution} (hidden from the controller): {massdist.describe(truth, cfg.box)}")
+    say("exploring (45 steps), estimating the mass distribution with the shipped H, then planning ...")
+    res = run_episode(cfg, truth, jax.random.PRNGKey(args.seed), estimator=learned_estimator(cfg))
+    s = res.summary
+    say(f"estimate: {massdist.describe(res.belief, cfg.box)}")
+    say(
+        f"  mass {float(res.belief.total_mass):.2f} kg (true {float(truth.total_mass):.2f}), centre-of-mass "
+        f"error {s['com_error_cm']:.1f} cm, IoU {s['iou']:.2f}"
+    )
+    if s["aborted"]:
+        say(s["abort_reason"])
+    else:
+        outcome = "turned the box by pi/2" if s["success"] else f"failed: {s['failed_reason']}"
+        say(
+            f"MPC {outcome} in {s['steps']} steps ({s['steps'] - s['exploration_steps']} after exploring), "
+            f"max balance error {100 * s['max_balance_error_m']:.1f} cm, "
+            f"planning {s['plan_ms_median']:.2f} ms per step (median)"
         )
-        res = cmd_simulate(ns)
-        out[name] = res
-        if not args.json:
-            sys.stdout.write(f"\n== naive rotation, distribution {name} ==\n")
-            _emit(res, False)
-    return {"command": "demo", "results": out}
+    summary = {
+        "command": "demo",
+        "distribution": args.distribution,
+        "estimator": "learned",
+        "backend": "native",
+        "seed": args.seed,
+        **s,
+    }
+    if args.plot:
+        from boxjax.plots import plot_demo
+
+        target = float(res.trace.s[0, 4]) + cfg.task.target_yaw_delta
+        verdict = "refused (hazardous)" if s["aborted"] else ("success" if s["success"] else "failure")
+        title = f"box {args.distribution}: {verdict}"
+        summary["plot"] = plot_demo(
+            truth, res.belief, res.trace, args.plot, cfg.box, cfg.task.balance_limit, target, title
+        )
+        say(f"figure: {summary['plot']}")
+    summary["wall_s"] = time.perf_counter() - t0
+    return summary
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -166,7 +197,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     r.set_defaults(func=cmd_rotate)
 
-    d = sub.add_parser("demo", help="what `make demo` runs")
+    d = sub.add_parser("demo", help="the whole pipeline on one box (what `make demo` runs)")
+    d.add_argument("--distribution", choices=NAMES, default="A")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--plot", default="boxjax_demo.png", help="figure path ('' for none)")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_demo)
     return p

@@ -45,14 +45,51 @@ class EpisodeResult(NamedTuple):
     plan_ms: np.ndarray  # (n_plans,) wall milliseconds per planning call (after the first)
 
 
-def hazard_explanation(belief: massdist.MassDistribution, cfg: Config) -> str | None:
-    """None if the believed distribution is safe to turn; else why not, in terms a person understands."""
-    if not bool(massdist.is_hazardous(belief, cfg.box)):
+def hazard_explanation(
+    belief: massdist.MassDistribution, cfg: Config, hazardous: bool | None = None
+) -> str | None:
+    """None if the belief is safe to turn; else why not, in terms a person understands.
+
+    `hazardous` overrides the paper's rule on `belief` (a learned estimator's calibrated decision).
+    """
+    if hazardous is None:
+        hazardous = bool(massdist.is_hazardous(belief, cfg.box))
+    if not hazardous:
         return None
     return (
-        "refusing to rotate: the estimated mass distribution is hazardous (paper §4.2). "
-        + massdist.describe(belief, cfg.box)
+        "refusing to rotate: the estimated mass distribution is hazardous (paper §4.2: all mass in one outer "
+        "quarter of the box, over one belt or one end). Estimate: " + massdist.describe(belief, cfg.box)
     )
+
+
+def oracle_estimator(truth: massdist.MassDistribution, cfg: Config) -> dict:
+    """The true distribution (issue 3's estimator slot)."""
+    return {"distribution": truth, "hazardous": bool(massdist.is_hazardous(truth, cfg.box))}
+
+
+def learned_estimator(cfg: Config, weights: str | None = None):
+    """The learned H as a controller estimator: exploration dict -> {"distribution", "hazardous", ...}.
+
+    weights: an estimator checkpoint (default: the one shipped with boxjax). Raises CheckpointError for a
+    missing, corrupt or incompatible file.
+    """
+    from boxjax import estimator as E
+    from boxjax import explore
+    from boxjax.estimator_pipeline import default_estimator
+
+    model = default_estimator(cfg) if weights is None else E.load(weights, expected_box_config=cfg.box)
+    applied = explore.applied_actions(cfg)
+
+    def estimate(exploration: dict) -> dict:
+        if exploration["actions"].shape[0] != applied.shape[0]:
+            raise ValueError(
+                f"the learned estimator needs the full {applied.shape[0]}-step exploration, got "
+                f"{exploration['actions'].shape[0]} steps (did the box leave the belts while exploring?)"
+            )
+        traj, final = explore.trajectory(exploration["s"], exploration["belt_speed"], applied)
+        return E.estimate(model, np.asarray(traj), np.asarray(final))
+
+    return estimate
 
 
 @lru_cache(maxsize=8)
@@ -77,7 +114,9 @@ def run_episode(
     through the oracle estimator).
 
     Args:
-      estimator: "oracle", or a callable(exploration dict) -> MassDistribution (the learned H).
+      estimator: "oracle", or a callable(exploration dict with s (T+1, 5), belt_speed (T+1, 2),
+        actions (T, 4)) -> dict with "distribution" (MassDistribution) and "hazardous" (bool), such as
+        `learned_estimator(cfg)`.
       force_map: calibrate.ForceMap, needed by the "paper" prior variant.
       max_steps: control-step cap (default cfg.task.max_steps), exploration included.
     """
@@ -112,11 +151,11 @@ def run_episode(
     }
 
     # 2. the belief
-    belief = truth if estimator == "oracle" else estimator(exploration)
-    belief = massdist.validate(belief, cfg.box)
+    est = oracle_estimator(truth, cfg) if estimator == "oracle" else estimator(exploration)
+    belief = massdist.validate(est["distribution"], cfg.box)
 
     # 3. refuse when hazardous
-    why = hazard_explanation(belief, cfg)
+    why = hazard_explanation(belief, cfg, bool(est["hazardous"]))
     plan_ms: list[float] = []
     if why is None and not bool(state.done):
         # 4. physics-prior MPC
@@ -165,6 +204,12 @@ def run_episode(
         "plan_ms_median": statistics.median(timed) if timed else None,
         "truth_hazardous": bool(massdist.is_hazardous(truth, cfg.box)),
     }
+    if estimator != "oracle":
+        from boxjax.estimator import com_error_cm
+
+        summary["iou"] = float(massdist.iou(belief.occupancy, truth.occupancy))
+        summary["mass_error_kg"] = float(belief.total_mass - truth.total_mass)
+        summary["com_error_cm"] = float(com_error_cm(belief, truth, cfg.box))
     if not aborted and not s["done"]:
         summary["failed_reason"] = task.REASONS[task.STEP_CAP]
     return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))

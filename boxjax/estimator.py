@@ -1,14 +1,15 @@
 """The estimator H (paper §2.2): exploration trajectory -> voxel occupancy grid and total mass.
 
-Data (one box; batches carry a leading axis B):
-  traj: (T, 9) float32, T = 45 exploration steps. Row t is the planar state s_t = (P1, P2, x, y, yaw)
-    (m, m, m, m, rad, conveyor frame) BEFORE step t, then the action a_t = (v1, v2, dp1, dp2) (m/s, m/s,
-    m, m) applied during it.
-  final: (5,) the planar state after the last step. Transitions are (traj[t, :5], traj[t, 5:], s_{t+1})
+Data (one box; batches carry a leading axis B), as `boxjax.explore.trajectory` builds it:
+  traj: (T, 11) float32, T = 45 exploration steps. Row t is the planar state s_t = (P1, P2, x, y, yaw)
+    (m, m, m, m, rad, conveyor frame) BEFORE step t, the action a_t = (v1, v2, dp1, dp2) (m/s, m/s, m, m)
+    as applied during it (belt speeds: the ramped setpoints reached at its end, see
+    `explore.applied_actions`), and the belt surface speeds w_t (m/s) MEASURED at its end.
+  final: (5,) the planar state after the last step. Transitions are (traj[t, :5], traj[t, 5:9], s_{t+1})
     with s_{t+1} = traj[t + 1, :5], or `final` for the last step.
   occupancy: (nx, ny, nz) float32 in {0, 1}; total_mass: () kg (targets, `boxjax.massdist`).
 
-Features (`features`, 15 per step, flattened to (T * 15,)): what the box did in response to known actions.
+Features (`features`, 20 per step, flattened to (T * 20,)): what the box did in response to known actions.
 Under Coulomb friction the belts' pull on the box is proportional to the normal load each belt carries, so
 the split of translation and rotation between the belts reveals where the mass sits over each belt, and
 the transient of the 3-step action holds reveals the inertia. Absolute pose says little, so only relative
@@ -17,9 +18,14 @@ quantities enter:
   * the box displacement in the box frame at s (2): (dx, dy) rotated by -yaw, i.e. the response as the box
     itself feels it (the mass distribution is fixed in the box frame);
   * belt centre-lines relative to the box centre, P1 - y and P2 - y (2): which voxel rows rest on each belt;
-  * belt tracking error dP_i - dp_i (2): how far each carriage lagged its command (a load-dependent lag is
-    the clearest trace of the total MASS, which pure Coulomb friction otherwise hides: accelerations under
-    friction do not depend on the mass);
+  * carriage lag after the step (2): P_i(t+1) - (P_i(0) + sum of the applied dp_i so far), i.e. measured
+    minus commanded belt position. The carriage servo (kp = 5e4 N/m) gives way by the lateral friction
+    force / kp, so this is a force gauge: together with the belt lag, the clearest trace of the total MASS,
+    which pure Coulomb friction otherwise hides (accelerations under friction do not depend on the mass);
+  * belt speed lag after the step (2): commanded (ramped) minus measured belt speed, v_i - w_i; the belt
+    servo (kv = 2e4 N s/m) is slowed by the friction force along x / kv (plus a load-independent
+    acceleration term);
+  * the box pose after the step relative to the start (3): x - x0, y - y0, yaw - yaw0;
   * the action a (4): fixed in the paper's exploration, so normally constant; kept so H stays valid if
     the exploration sequence is changed or perturbed.
 Each feature is standardised with mean / std over the training set (constant features keep std 1), and
@@ -27,12 +33,21 @@ the total mass is standardised the same way; both statistics are stored with the
 
 Model: one MLP trunk (`EstimatorConfig.hidden`, activation after every layer) and two linear heads:
 occupancy logits (nx * ny * nz) trained with binary cross-entropy, and the standardised mass with MSE.
-Loss = BCE + mass_weight * MSE (paper footnote on H). Default size 675 -> 512 -> 512 -> 512 -> (256 | 1):
-about 1.0e6 parameters (the paper's H has ~2e6; `hidden` sets it).
+Loss = BCE + mass_weight * MSE (paper footnote on H), optionally + com_weight * (soft centre-of-mass
+error / 5 cm)^2 and + iou_weight * soft Jaccard loss (`loss_and_metrics`). `members` > 1 trains an
+ensemble of independently initialised nets side by side (vmap over a leading member axis) and averages
+their probabilities and masses. This class's defaults: one net 900 -> 512 -> 512 -> 512 -> (256 | 1),
+1.1e6 parameters; the shipped H (`boxjax.estimator_pipeline.DEFAULT_ESTIMATOR`) is 5 members of
+900 -> 256 -> 256 -> 256 -> (256 | 1), 2.1e6 parameters in all (the paper's H has ~2e6).
+
+Decisions (`calibrate`, on held-out boxes): a voxel is occupied when its probability exceeds
+`occupancy_threshold` (chosen for the best median IoU); the box is hazardous when the distribution
+thresholded at `hazard_threshold` is hazardous by `massdist.is_hazardous` (chosen for the best precision
+at a hazard recall >= 0.99). Both are stored in the checkpoint.
 
 Training (`train`): held-out validation split, AdamW with global-norm clipping, one jitted `lax.scan`
 over the shuffled minibatches of each epoch (faster on a 2-core CPU than one jitted call per minibatch:
-see `train`), early stopping on the validation loss that returns the best parameters seen.
+see `train`), early stopping on the validation loss (per member) that returns the best parameters seen.
 """
 
 from __future__ import annotations
@@ -69,6 +84,7 @@ __all__ = [
     "Batch",
     "features",
     "init_net",
+    "init_members",
     "make_optimizer",
     "make_train_step",
     "loss_and_metrics",
@@ -77,6 +93,9 @@ __all__ = [
     "predict",
     "predict_batch",
     "predict_checked",
+    "predict_hazard",
+    "estimate",
+    "calibrate",
     "to_distribution",
     "iou",
     "mass_rel_error",
@@ -91,7 +110,8 @@ __all__ = [
 
 N_STATE = 5  # (P1, P2, x, y, yaw)
 N_ACTION = 4  # (v1, v2, dp1, dp2)
-N_STEP_FEATURES = 15  # see `features`
+N_STEP_FEATURES = 20  # see `features`
+N_TRAJ_COLUMNS = N_STATE + N_ACTION + 2  # + measured belt speeds (2)
 MIN_MASS = 1e-3  # kg, floor on a predicted total mass (mass properties need M > 0)
 
 _ACTIVATIONS = {"gelu": jax.nn.gelu, "relu": jax.nn.relu, "tanh": jnp.tanh}
@@ -114,7 +134,11 @@ class EstimatorConfig:
     max_epochs: int = 400
     patience: int = 40  # stop after this many epochs without a new best validation loss
     mass_weight: float = 1.0  # weight of the mass MSE (standardised mass) against the mean voxel BCE
+    iou_weight: float = 0.0  # weight of the soft Jaccard loss 1 - sum(p t) / sum(p + t - p t) per box
+    com_weight: float = 0.0  # weight of the soft centre-of-mass error |com(p) - com|^2 / (5 cm)^2
+    input_noise: float = 0.0  # std of gaussian noise added to the standardised features while training
     val_fraction: float = 0.15  # held-out share of the boxes (at least one box)
+    members: int = 1  # ensemble size: independently initialised nets trained side by side (vmap)
     seed: int = 0  # used by `train` when no key is passed
 
     def __post_init__(self):
@@ -124,10 +148,10 @@ class EstimatorConfig:
             raise ConfigError(f"activation {self.activation!r} not in {sorted(_ACTIVATIONS)}")
         if not (self.learning_rate > 0 and self.weight_decay >= 0 and self.grad_clip > 0):
             raise ConfigError("need learning_rate > 0, weight_decay >= 0, grad_clip > 0")
-        if self.batch_size < 1 or self.max_epochs < 1 or self.patience < 1:
-            raise ConfigError("batch_size, max_epochs and patience must be >= 1")
-        if self.mass_weight < 0:
-            raise ConfigError(f"mass_weight must be >= 0, got {self.mass_weight}")
+        if self.batch_size < 1 or self.max_epochs < 1 or self.patience < 1 or self.members < 1:
+            raise ConfigError("batch_size, max_epochs, patience and members must be >= 1")
+        if min(self.mass_weight, self.iou_weight, self.com_weight, self.input_noise) < 0:
+            raise ConfigError("mass_weight, iou_weight, com_weight and input_noise must be >= 0")
         if not 0 < self.val_fraction < 1:
             raise ConfigError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
 
@@ -155,11 +179,13 @@ class Normaliser(NamedTuple):
 
 
 class Batch(NamedTuple):
-    """Training examples, already standardised. x: (B, F); occ: (B, V) in {0, 1}; mass: (B,) standardised."""
+    """Training examples, already standardised. x: (B, F); occ: (B, V) in {0, 1}; mass: (B,) standardised;
+    com: (B, 3) m, centre of mass of the occupied voxels (box frame), or None (then com_weight is unused)."""
 
     x: jax.Array
     occ: jax.Array
     mass: jax.Array
+    com: jax.Array | None = None
 
 
 @dataclass(frozen=True)
@@ -167,10 +193,16 @@ class EstimatorParams:
     """A trained H: a pytree whose leaves are the network and the normalisation statistics.
 
     net: {"trunk": mlp params, "occ": mlp params (one linear layer to V = nx*ny*nz logits),
-          "mass": mlp params (one linear layer to 1)}.
+          "mass": mlp params (one linear layer to 1)}, every leaf with a leading ensemble axis of size
+          cfg.members (the members' predictions are averaged: probabilities and masses).
     norm: `Normaliser`.
     Static (pytree metadata, hashable): cfg, box (grid and size the occupancy refers to), n_steps (T the
-    features were built for), provenance_json (JSON text: seed, data sizes, versions; see `provenance`).
+    features were built for), provenance_json (JSON text: seed, data sizes, versions; see `provenance`),
+    and the two calibrated decision thresholds (`calibrate`):
+      occupancy_threshold: a voxel is occupied when its probability exceeds it (`to_distribution`);
+      hazard_threshold: the box is declared hazardous when the distribution thresholded at THIS value is
+        hazardous by `massdist.is_hazardous` (`predict_hazard`). A higher value keeps fewer, more certain
+        voxels, so more boxes look confined to one region U1..U4: recall goes up, precision down.
     """
 
     net: dict
@@ -179,6 +211,8 @@ class EstimatorParams:
     box: BoxConfig
     n_steps: int
     provenance_json: str = "{}"
+    occupancy_threshold: float = 0.5
+    hazard_threshold: float = 0.5
 
     @property
     def provenance(self) -> dict:
@@ -190,7 +224,9 @@ class EstimatorParams:
 
 
 jax.tree_util.register_dataclass(
-    EstimatorParams, data_fields=["net", "norm"], meta_fields=["cfg", "box", "n_steps", "provenance_json"]
+    EstimatorParams,
+    data_fields=["net", "norm"],
+    meta_fields=["cfg", "box", "n_steps", "provenance_json", "occupancy_threshold", "hazard_threshold"],
 )
 
 
@@ -199,17 +235,19 @@ jax.tree_util.register_dataclass(
 
 
 def features(traj: jax.Array, final: jax.Array) -> jax.Array:
-    """(T * 15,) features of ONE exploration trajectory (module docstring lists them).
+    """(T * 20,) features of ONE exploration trajectory (module docstring lists them).
 
     Args:
-      traj: (T, 9) states before each step (5) and actions (4); see the module docstring for units.
+      traj: (T, 11) states before each step (5), applied actions (4), belt speeds measured at the end of
+        each step (2); see the module docstring for units.
       final: (5,) state after the last step.
     Returns:
-      (T * 15,) float32, step-major: [ds (5), box-frame dx, dy (2), P1 - y, P2 - y (2),
-      dP1 - dp1, dP2 - dp2 (2), a (4)] for t = 0..T-1.
+      (T * 20,) float32, step-major: [ds (5), box-frame dx, dy (2), P1 - y, P2 - y (2), carriage lag (2),
+      belt speed lag (2), pose after the step minus the start pose (x, y, yaw) (3), a (4)] for t = 0..T-1.
     """
     s = traj[:, :N_STATE]
-    a = traj[:, N_STATE:]
+    a = traj[:, N_STATE:N_STATE + N_ACTION]
+    w = traj[:, N_STATE + N_ACTION:]
     s_next = jnp.concatenate([s[1:], final[None, :]], axis=0)
     ds = s_next - s
     ds = ds.at[:, YAW].set(wrap_angle(ds[:, YAW]))
@@ -217,9 +255,24 @@ def features(traj: jax.Array, final: jax.Array) -> jax.Array:
     dx_box = c * ds[:, X] + si * ds[:, Y]
     dy_box = -si * ds[:, X] + c * ds[:, Y]
     belts_rel = s[:, (P1, P2)] - s[:, Y:Y + 1]
-    tracking = ds[:, (P1, P2)] - a[:, 2:4]
-    f = jnp.concatenate([ds, dx_box[:, None], dy_box[:, None], belts_rel, tracking, a], axis=1)
+    # Differences first, then sums: P ~ 0.1 m, the lags ~ 1e-4 m (float32 keeps ~1e-8 m either way).
+    carriage_lag = jnp.cumsum(ds[:, (P1, P2)] - a[:, 2:4], axis=0)
+    belt_lag = a[:, :2] - w
+    pose = jnp.cumsum(ds[:, (X, Y, YAW)], axis=0)
+    f = jnp.concatenate(
+        [ds, dx_box[:, None], dy_box[:, None], belts_rel, carriage_lag, belt_lag, pose, a], axis=1
+    )
     return f.reshape(-1).astype(jnp.float32)
+
+
+def init_members(key: jax.Array, n_features: int, n_voxels: int, cfg: EstimatorConfig) -> dict:
+    """`cfg.members` independently initialised nets stacked on a leading axis (the ensemble)."""
+    return jax.vmap(lambda k: init_net(k, n_features, n_voxels, cfg))(jax.random.split(key, cfg.members))
+
+
+def _select_members(mask: jax.Array, new: dict, old: dict) -> dict:
+    """Per member (leading axis), `new` where mask else `old`."""
+    return jax.tree.map(lambda a, b: jnp.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
 def init_net(key: jax.Array, n_features: int, n_voxels: int, cfg: EstimatorConfig) -> dict:
@@ -240,15 +293,41 @@ def _forward(net: dict, x: jax.Array, cfg: EstimatorConfig) -> tuple[jax.Array, 
     return mlp.apply(net["occ"], h), mlp.apply(net["mass"], h)[0]
 
 
-def loss_and_metrics(net: dict, batch: Batch, cfg: EstimatorConfig) -> tuple[jax.Array, dict]:
-    """Mean voxel BCE + mass_weight * MSE(standardised mass) over a batch; metrics include both terms and
-    the mean IoU at threshold 0.5."""
-    logits, mass = jax.vmap(_forward, in_axes=(None, 0, None))(net, batch.x, cfg)
+COM_SCALE = 0.05  # m: a 5 cm centre-of-mass error costs 1 in the com loss
+
+
+def loss_and_metrics(
+    net: dict, batch: Batch, cfg: EstimatorConfig, box: BoxConfig | None = None, key: jax.Array | None = None
+) -> tuple[jax.Array, dict]:
+    """Training objective over a batch:
+
+      mean voxel BCE + mass_weight * MSE(standardised mass) + iou_weight * mean soft Jaccard loss
+      + com_weight * mean |soft com - com|^2 / COM_SCALE^2,
+
+    the soft quantities computed from the occupancy probabilities p = sigmoid(logits) (soft centre of mass
+    = sum p_v c_v / sum p_v over voxel centres c_v, needs `box` and batch.com). With `key` and
+    cfg.input_noise > 0, gaussian noise of that std is added to the standardised features (training
+    augmentation). Metrics: every term and the mean IoU at threshold 0.5.
+    """
+    x = batch.x
+    if key is not None and cfg.input_noise > 0:
+        x = x + cfg.input_noise * jax.random.normal(key, x.shape, x.dtype)
+    logits, mass = jax.vmap(_forward, in_axes=(None, 0, None))(net, x, cfg)
     bce = jnp.mean(optax.sigmoid_binary_cross_entropy(logits, batch.occ))
     mse = jnp.mean((mass - batch.mass) ** 2)
-    loss = bce + cfg.mass_weight * mse
+    p = jax.nn.sigmoid(logits)
+    inter = jnp.sum(p * batch.occ, axis=1)
+    jaccard = jnp.mean(1.0 - (inter + 1e-6) / (jnp.sum(p + batch.occ, axis=1) - inter + 1e-6))
+    loss = bce + cfg.mass_weight * mse + cfg.iou_weight * jaccard
+    metrics = {"bce": bce, "mass_mse": mse, "jaccard": jaccard}
+    if box is not None and batch.com is not None:
+        centres = jnp.asarray(massdist.voxel_centres(box)).reshape(-1, 3)
+        com_p = (p @ centres) / jnp.sum(p, axis=1, keepdims=True)
+        com_loss = jnp.mean(jnp.sum((com_p - batch.com) ** 2, axis=1)) / COM_SCALE**2
+        loss = loss + cfg.com_weight * com_loss
+        metrics["com_loss"] = com_loss
     mean_iou = jnp.mean(jax.vmap(iou)(logits > 0.0, batch.occ))
-    return loss, {"loss": loss, "bce": bce, "mass_mse": mse, "iou": mean_iou}
+    return loss, {"loss": loss, **metrics, "iou": mean_iou}
 
 
 def make_optimizer(cfg: EstimatorConfig) -> optax.GradientTransformation:
@@ -259,38 +338,46 @@ def make_optimizer(cfg: EstimatorConfig) -> optax.GradientTransformation:
     )
 
 
-def _train_step(cfg: EstimatorConfig, optimizer: optax.GradientTransformation):
-    def step(net, opt_state, batch: Batch):
-        (_, metrics), grads = jax.value_and_grad(loss_and_metrics, has_aux=True)(net, batch, cfg)
+def _train_step(cfg: EstimatorConfig, optimizer: optax.GradientTransformation, box: BoxConfig | None = None):
+    def step(net, opt_state, batch: Batch, key=None):
+        (_, metrics), grads = jax.value_and_grad(loss_and_metrics, has_aux=True)(net, batch, cfg, box, key)
         updates, opt_state = optimizer.update(grads, opt_state, net)
         return optax.apply_updates(net, updates), opt_state, metrics
 
     return step
 
 
-def make_train_step(cfg: EstimatorConfig, optimizer: optax.GradientTransformation):
-    """Jitted pure step `(net, opt_state, batch: Batch) -> (net, opt_state, metrics)`."""
-    return jax.jit(_train_step(cfg, optimizer))
+def make_train_step(
+    cfg: EstimatorConfig, optimizer: optax.GradientTransformation, box: BoxConfig | None = None
+):
+    """Jitted pure step `(net, opt_state, batch: Batch, key=None) -> (net, opt_state, metrics)` (`box`
+    enables the centre-of-mass loss, `key` the input noise; see `loss_and_metrics`)."""
+    return jax.jit(_train_step(cfg, optimizer, box))
 
 
-def _make_train_epoch(cfg: EstimatorConfig, optimizer: optax.GradientTransformation, batch_size: int):
+def _make_train_epoch(
+    cfg: EstimatorConfig, optimizer: optax.GradientTransformation, batch_size: int, box: BoxConfig | None
+):
     """Jitted `(net, opt_state, data: Batch, key) -> (net, opt_state, mean metrics)`: one pass over a fresh
     permutation of `data` as a `lax.scan` over n // batch_size minibatches (the remainder, different every
-    epoch, is skipped)."""
-    step = _train_step(cfg, optimizer)
+    epoch, is skipped), each with its own noise key."""
+    step = _train_step(cfg, optimizer, box)
 
     @jax.jit
     def epoch(net, opt_state, data: Batch, key):
         n = data.x.shape[0]
         n_batches = n // batch_size
-        order = jax.random.permutation(key, n)[: n_batches * batch_size].reshape(n_batches, batch_size)
+        key_perm, key_noise = jax.random.split(key)
+        order = jax.random.permutation(key_perm, n)[: n_batches * batch_size].reshape(n_batches, batch_size)
 
-        def body(carry, idx):
+        def body(carry, xs):
+            idx, key_batch = xs
             net, opt_state = carry
-            net, opt_state, metrics = step(net, opt_state, jax.tree.map(lambda a: a[idx], data))
+            net, opt_state, metrics = step(net, opt_state, jax.tree.map(lambda a: a[idx], data), key_batch)
             return (net, opt_state), metrics
 
-        (net, opt_state), metrics = jax.lax.scan(body, (net, opt_state), order)
+        xs = (order, jax.random.split(key_noise, n_batches))
+        (net, opt_state), metrics = jax.lax.scan(body, (net, opt_state), xs)
         return net, opt_state, jax.tree.map(jnp.mean, metrics)
 
     return epoch
@@ -303,8 +390,11 @@ def _compile_key(cfg: EstimatorConfig) -> EstimatorConfig:
 
 
 @functools.lru_cache(maxsize=16)
-def _cached_train_epoch(cfg: EstimatorConfig, batch_size: int):
-    return _make_train_epoch(cfg, make_optimizer(cfg), batch_size)
+def _cached_train_epoch(cfg: EstimatorConfig, batch_size: int, box: BoxConfig | None = None):
+    """The epoch of `_make_train_epoch` vmapped over ensemble members (stacked nets, optimiser states and
+    keys; the data are shared)."""
+    epoch = _make_train_epoch(cfg, make_optimizer(cfg), batch_size, box)
+    return jax.jit(jax.vmap(epoch, in_axes=(0, 0, None, 0)))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -322,7 +412,7 @@ def _get(dataset, name: str):
 
 
 def _dataset_arrays(dataset, box: BoxConfig | None = None, n_steps: int | None = None):
-    """Validated float32 numpy (traj (B,T,9), final (B,5), occupancy (B,nx,ny,nz), total_mass (B,))."""
+    """Validated float32 numpy (traj (B,T,11), final (B,5), occupancy (B,nx,ny,nz), total_mass (B,))."""
     traj, final, occ, mass = (
         np.asarray(_get(dataset, k), np.float32) for k in ("traj", "final", "occupancy", "total_mass")
     )
@@ -347,12 +437,14 @@ def _dataset_arrays(dataset, box: BoxConfig | None = None, n_steps: int | None =
 
 
 def _check_traj(traj: np.ndarray, final: np.ndarray, n_steps: int | None, batched: bool) -> None:
-    """Raise ValueError unless traj is ([B,] T, 9) and final ([B,] 5), finite, with T == n_steps if given."""
-    lead = "(B, T, 9)" if batched else "(T, 9)"
+    """Raise ValueError unless traj is ([B,] T, 11) and final ([B,] 5), finite, with T == n_steps if
+    given."""
+    lead = "(B, T, 11)" if batched else "(T, 11)"
     want_ndim = 3 if batched else 2
-    if traj.ndim != want_ndim or traj.shape[-1] != N_STATE + N_ACTION:
+    if traj.ndim != want_ndim or traj.shape[-1] != N_TRAJ_COLUMNS:
         raise ValueError(
-            f"trajectory must have shape {lead} (5 state + 4 action columns per step), got {traj.shape}"
+            f"trajectory must have shape {lead} (5 state + 4 action + 2 measured belt speed columns per "
+            f"step, see boxjax.explore.trajectory), got {traj.shape}"
         )
     if n_steps is not None and traj.shape[-2] != n_steps:
         raise ValueError(
@@ -392,11 +484,15 @@ def _fit_normaliser(x: np.ndarray, mass: np.ndarray) -> Normaliser:
     )
 
 
-def _make_batch(x: jax.Array, occ: np.ndarray, mass: np.ndarray, norm: Normaliser) -> Batch:
+def _make_batch(x: jax.Array, occ: np.ndarray, mass: np.ndarray, norm: Normaliser, box: BoxConfig) -> Batch:
+    flat = occ.reshape(occ.shape[0], -1).astype(np.float32)
+    centres = massdist.voxel_centres(box).reshape(-1, 3)
+    com = flat @ centres / np.maximum(flat.sum(axis=1, keepdims=True), 1.0)
     return Batch(
         _standardise(jnp.asarray(x), norm),
-        jnp.asarray(occ.reshape(occ.shape[0], -1), jnp.float32),
+        jnp.asarray(flat),
         (jnp.asarray(mass, jnp.float32) - norm.mass_mean) / norm.mass_std,
+        jnp.asarray(com, jnp.float32),
     )
 
 
@@ -433,7 +529,7 @@ def train(
     Args:
       key: PRNG key (None: `jax.random.key(cfg.seed)`); split into the validation split, the init and the
         per-epoch shuffles.
-      dataset: mapping (dict or loaded .npz) or object with `traj` (B, T, 9), `final` (B, 5),
+      dataset: mapping (dict or loaded .npz) or object with `traj` (B, T, 11), `final` (B, 5),
         `occupancy` (B, nx, ny, nz) in {0, 1} and `total_mass` (B,) kg.
       cfg: EstimatorConfig.
       box: the BoxConfig the occupancy grids refer to (default `BoxConfig()`); its grid must match.
@@ -463,55 +559,68 @@ def train(
 
     x_all = _batched_features(jnp.asarray(traj), jnp.asarray(final))
     norm = _fit_normaliser(np.asarray(x_all)[train_index], mass[train_index])
-    train_data = _make_batch(x_all[train_index], occ[train_index], mass[train_index], norm)
-    val_data = _make_batch(x_all[val_index], occ[val_index], mass[val_index], norm)
+    train_data = _make_batch(x_all[train_index], occ[train_index], mass[train_index], norm, box)
+    val_data = _make_batch(x_all[val_index], occ[val_index], mass[val_index], norm, box)
 
-    net = init_net(key_init, x_all.shape[1], box.n_voxels, cfg)
+    k = cfg.members
+    net = init_members(key_init, x_all.shape[1], box.n_voxels, cfg)
     # Start the occupancy head at the training set's per-voxel occupancy rate: the first epochs then
     # learn the distribution-specific part instead of the prior.
     rate = jnp.clip(jnp.mean(train_data.occ, axis=0), 0.01, 0.99)
-    net["occ"][-1]["b"] = jnp.log(rate) - jnp.log1p(-rate)
+    net["occ"][-1]["b"] = jnp.broadcast_to(jnp.log(rate) - jnp.log1p(-rate), (k, box.n_voxels))
 
     optimizer = make_optimizer(cfg)
-    opt_state = optimizer.init(net)
+    opt_state = jax.vmap(optimizer.init)(net)
     batch_size = min(cfg.batch_size, len(train_index))
-    run_epoch = _cached_train_epoch(_compile_key(cfg), batch_size)
+    run_epoch = _cached_train_epoch(_compile_key(cfg), batch_size, box)
 
+    # Early stopping per member: each keeps its own best parameters; training ends when no member has
+    # improved for `patience` epochs. History rows are means over the members.
     names = ("loss", "bce", "mass_mse")
     history: dict[str, Any] = {f"{p}_{k}": [] for p in ("train", "val") for k in names}
     history["val_iou"] = []
-    best_net, best_loss, best_epoch = net, math.inf, -1
+    best_net = net
+    best_loss = np.full(k, np.inf)
+    best_epoch = np.full(k, -1)
     start = time.perf_counter()
     bar = tqdm(range(cfg.max_epochs), desc="train H", unit="epoch", disable=not progress, leave=False)
     stopped_early = False
     for epoch in bar:
         key_epochs, key_shuffle = jax.random.split(key_epochs)
-        net, opt_state, train_m = run_epoch(net, opt_state, train_data, key_shuffle)
-        val_m = _loss_metrics_jit(net, val_data, _compile_key(cfg))
+        net, opt_state, train_m = run_epoch(net, opt_state, train_data, jax.random.split(key_shuffle, k))
+        val_m = _member_metrics_jit(net, val_data, _compile_key(cfg), box)
         train_m, val_m = jax.device_get((train_m, val_m))
-        for k in names:
-            history[f"train_{k}"].append(float(train_m[k]))
-            history[f"val_{k}"].append(float(val_m[k]))
-        history["val_iou"].append(float(val_m["iou"]))
-        val_loss = float(val_m["loss"])
-        if not math.isfinite(val_loss):
+        for name in names:
+            history[f"train_{name}"].append(float(np.mean(train_m[name])))
+            history[f"val_{name}"].append(float(np.mean(val_m[name])))
+        history["val_iou"].append(float(np.mean(val_m["iou"])))
+        val_loss = np.asarray(val_m["loss"], np.float64)
+        if not np.all(np.isfinite(val_loss)):
             raise FloatingPointError(f"validation loss became {val_loss} at epoch {epoch}; lower the rate")
-        if val_loss < best_loss:
-            best_net, best_loss, best_epoch = net, val_loss, epoch
+        improved = val_loss < best_loss
+        if np.any(improved):
+            best_net = _select_members(jnp.asarray(improved), net, best_net)
+            best_loss = np.where(improved, val_loss, best_loss)
+            best_epoch = np.where(improved, epoch, best_epoch)
         bar.set_postfix(
-            train=f"{float(train_m['loss']):.4f}", val=f"{val_loss:.4f}", iou=f"{float(val_m['iou']):.3f}",
-            best=f"{best_loss:.4f}@{best_epoch}", refresh=False,
+            train=f"{history['train_loss'][-1]:.4f}", val=f"{history['val_loss'][-1]:.4f}",
+            iou=f"{history['val_iou'][-1]:.3f}", best=f"{np.mean(best_loss):.4f}@{int(best_epoch.max())}",
+            refresh=False,
         )
-        if epoch - best_epoch >= cfg.patience:
+        if epoch - int(best_epoch.max()) >= cfg.patience:
             stopped_early = True
             break
     bar.close()
 
+    best_epoch_all = int(best_epoch.max())
     history.update(
-        best_epoch=best_epoch, best_val_loss=best_loss, epochs_run=len(history["val_loss"]),
+        best_epoch=best_epoch_all, best_val_loss=float(np.mean(best_loss)),
+        member_best_epochs=[int(e) for e in best_epoch], epochs_run=len(history["val_loss"]),
         stopped_early=stopped_early, seconds=time.perf_counter() - start,
         train_index=train_index, val_index=val_index,
     )
+    best_loss = float(np.mean(best_loss))
+    best_epoch = best_epoch_all
     prov = {
         "seed": cfg.seed if not key_given else None,
         "key_data": _key_data(key),
@@ -536,14 +645,20 @@ def train(
 
 def losses(model: EstimatorParams, dataset) -> dict:
     """Training objective of `model` on a whole dataset (fields as for `train`): Python floats "loss",
-    "bce", "mass_mse" (standardised mass, as trained) and "iou" (mean, threshold 0.5)."""
+    "bce", "mass_mse" (standardised mass, as trained) and "iou" (mean, threshold 0.5), each the mean over
+    the ensemble members (as in the training history)."""
     traj, final, occ, mass = _dataset_arrays(dataset, model.box, model.n_steps)
-    batch = _make_batch(_batched_features(jnp.asarray(traj), jnp.asarray(final)), occ, mass, model.norm)
-    metrics = _loss_metrics_jit(model.net, batch, _compile_key(model.cfg))
-    return {k: float(v) for k, v in metrics.items()}
+    batch = _make_batch(
+        _batched_features(jnp.asarray(traj), jnp.asarray(final)), occ, mass, model.norm, model.box
+    )
+    metrics = _member_metrics_jit(model.net, batch, _compile_key(model.cfg), model.box)
+    return {k: float(np.mean(v)) for k, v in metrics.items()}
 
 
-_loss_metrics_jit = jax.jit(lambda net, batch, cfg: loss_and_metrics(net, batch, cfg)[1], static_argnums=2)
+_member_metrics_jit = jax.jit(
+    lambda net, batch, cfg, box: jax.vmap(lambda n: loss_and_metrics(n, batch, cfg, box)[1])(net),
+    static_argnums=(2, 3),
+)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -555,23 +670,24 @@ def predict(model: EstimatorParams, traj: jax.Array, final: jax.Array) -> tuple[
 
     Args:
       model: a trained EstimatorParams.
-      traj: (T, 9) with T == model.n_steps; final: (5,). Not validated here: see `predict_checked`.
+      traj: (T, 11) with T == model.n_steps; final: (5,). Not validated here: see `predict_checked`.
     Returns:
       occupancy_prob: (nx, ny, nz) in (0, 1), per-voxel probability of being occupied.
       total_mass: () kg, floored at MIN_MASS.
     """
     x = _standardise(features(traj, final), model.norm)
-    logits, mass_std = _forward(model.net, x, model.cfg)
-    mass = mass_std * model.norm.mass_std + model.norm.mass_mean
-    return jax.nn.sigmoid(logits).reshape(model.box.grid), jnp.maximum(mass, MIN_MASS)
+    logits, mass_std = jax.vmap(_forward, in_axes=(0, None, None))(model.net, x, model.cfg)
+    prob = jnp.mean(jax.nn.sigmoid(logits), axis=0)  # ensemble average
+    mass = jnp.mean(mass_std) * model.norm.mass_std + model.norm.mass_mean
+    return prob.reshape(model.box.grid), jnp.maximum(mass, MIN_MASS)
 
 
-# Jitted `predict` over a batch: traj (B, T, 9), final (B, 5) -> (prob (B, nx, ny, nz), mass (B,) kg).
+# Jitted `predict` over a batch: traj (B, T, 11), final (B, 5) -> (prob (B, nx, ny, nz), mass (B,) kg).
 predict_batch = jax.jit(jax.vmap(predict, in_axes=(None, 0, 0)))
 
 
 def predict_checked(model: EstimatorParams, traj, final) -> tuple[np.ndarray, np.ndarray]:
-    """Host-side `predict` that validates its input: one trajectory (T, 9) + (5,) or a batch (B, T, 9) +
+    """Host-side `predict` that validates its input: one trajectory (T, 11) + (5,) or a batch (B, T, 11) +
     (B, 5).
 
     Raises ValueError for a wrong shape, a wrong number of steps (T != model.n_steps), NaN / inf, or a
@@ -643,38 +759,86 @@ def hazard_precision_recall(pred_hazard: jax.Array, true_hazard: jax.Array) -> t
     return precision.astype(jnp.float32), recall.astype(jnp.float32)
 
 
-def _metrics_batch(model: EstimatorParams, traj, final, occ, mass, threshold: float):
-    box = model.box
-    prob, pred_mass = jax.vmap(predict, in_axes=(None, 0, 0))(model, traj, final)
-    pred = jax.vmap(to_distribution, in_axes=(0, 0, None))(prob, pred_mass, threshold)
+def predict_hazard(model: EstimatorParams, prob: jax.Array) -> jax.Array:
+    """() bool: the calibrated hazard decision for ONE prediction (pure; vmap for batches).
+
+    Hazardous iff `massdist.is_hazardous` of the distribution thresholded at `model.hazard_threshold`
+    (with `to_distribution`'s fallback to the most probable voxel), i.e. iff every voxel outside one of
+    the regions U1..U4 has an occupancy probability <= hazard_threshold.
+    """
+    return _hazard(prob, model.hazard_threshold, model.box)
+
+
+def _hazard(prob: jax.Array, threshold, box: BoxConfig) -> jax.Array:
+    return massdist.is_hazardous(to_distribution(prob, jnp.ones(()), threshold), box)
+
+
+def estimate(model: EstimatorParams, traj, final) -> dict:
+    """Everything the controller needs from ONE exploration trajectory (host side, validated input).
+
+    Args:
+      traj: (T, 11), final: (5,) as built by `boxjax.explore.trajectory` / `explore.run`.
+    Returns:
+      dict: "prob" (nx, ny, nz) numpy occupancy probabilities; "distribution" the MassDistribution
+      thresholded at model.occupancy_threshold with the predicted total mass; "total_mass" float kg;
+      "hazardous" bool (calibrated rule, `predict_hazard`).
+    Raises:
+      ValueError for a trajectory of the wrong shape / length or with NaN / inf (`predict_checked`).
+    """
+    prob, mass = predict_checked(model, traj, final)
+    dist = to_distribution(jnp.asarray(prob), jnp.asarray(mass), model.occupancy_threshold)
+    return {
+        "prob": prob,
+        "distribution": dist,
+        "total_mass": float(mass),
+        "hazardous": bool(predict_hazard(model, jnp.asarray(prob))),
+    }
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _thresholded_metrics(box: BoxConfig, prob, pred_mass, occ, mass, occ_threshold, hazard_threshold):
+    """Per-box metrics of batched predictions; both thresholds are traced (no recompile per value)."""
+    pred = jax.vmap(to_distribution, in_axes=(0, 0, None))(prob, pred_mass, occ_threshold)
     true = MassDistribution(occ, mass)
     return {
         "iou": jax.vmap(iou)(pred.occupancy, occ),
         "mass_rel_error": mass_rel_error(pred_mass, mass),
         "com_error_cm": jax.vmap(com_error_cm, in_axes=(0, 0, None))(pred, true, box),
-        "pred_hazard": jax.vmap(massdist.is_hazardous, in_axes=(0, None))(pred, box),
+        "pred_hazard": jax.vmap(_hazard, in_axes=(0, None, None))(prob, hazard_threshold, box),
         "true_hazard": jax.vmap(massdist.is_hazardous, in_axes=(0, None))(true, box),
     }
 
 
-_metrics_batch_jit = jax.jit(_metrics_batch, static_argnames="threshold")
+def _predictions(model: EstimatorParams, dataset, chunk: int):
+    """(prob (B, nx, ny, nz), pred_mass (B,), occ, mass) as numpy, predicting in chunks of boxes."""
+    traj, final, occ, mass = _dataset_arrays(dataset, model.box, model.n_steps)
+    parts = [
+        jax.device_get(predict_batch(model, traj[i:i + chunk], final[i:i + chunk]))
+        for i in range(0, traj.shape[0], chunk)
+    ]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), occ, mass
 
 
-def evaluate(model: EstimatorParams, dataset, threshold: float = 0.5, chunk: int = 1024) -> dict:
+def _per_box_metrics(model: EstimatorParams, predictions, occ_threshold: float, hazard_threshold: float):
+    prob, pred_mass, occ, mass = predictions
+    out = _thresholded_metrics(model.box, prob, pred_mass, occ, mass, jnp.float32(occ_threshold),
+                               jnp.float32(hazard_threshold))
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def evaluate(model: EstimatorParams, dataset, threshold: float | None = None, chunk: int = 1024) -> dict:
     """Prediction quality of H on a dataset (same fields as for `train`), in chunks of `chunk` boxes.
+
+    IoU and the centre-of-mass error use the distribution thresholded at `threshold` (default: the
+    model's calibrated `occupancy_threshold`); the hazard flag uses `predict_hazard` (the model's
+    `hazard_threshold`).
 
     Returns a dict of Python numbers: iou_median, iou_mean, mass_rel_error_median, mass_rel_error_mean,
     com_error_cm_median, com_error_cm_mean, hazard_precision, hazard_recall (NaN when undefined),
     hazard_true, hazard_pred (counts), boxes.
     """
-    traj, final, occ, mass = _dataset_arrays(dataset, model.box, model.n_steps)
-    parts = [
-        jax.device_get(_metrics_batch_jit(
-            model, traj[i:i + chunk], final[i:i + chunk], occ[i:i + chunk], mass[i:i + chunk], threshold
-        ))
-        for i in range(0, traj.shape[0], chunk)
-    ]
-    m = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    threshold = model.occupancy_threshold if threshold is None else float(threshold)
+    m = _per_box_metrics(model, _predictions(model, dataset, chunk), threshold, model.hazard_threshold)
     precision, recall = hazard_precision_recall(m["pred_hazard"], m["true_hazard"])
     return {
         "iou_median": float(np.median(m["iou"])),
@@ -687,15 +851,62 @@ def evaluate(model: EstimatorParams, dataset, threshold: float = 0.5, chunk: int
         "hazard_recall": float(recall),
         "hazard_true": int(np.sum(m["true_hazard"])),
         "hazard_pred": int(np.sum(m["pred_hazard"])),
-        "boxes": int(traj.shape[0]),
+        "boxes": int(len(m["iou"])),
     }
+
+
+_GRID = tuple(round(0.05 * i, 2) for i in range(2, 19))  # 0.10 .. 0.90
+_HAZARD_GRID = tuple(round(0.01 * i, 2) for i in range(10, 100))  # 0.10 .. 0.99
+
+
+def calibrate(
+    model: EstimatorParams, dataset, hazard_recall_target: float = 0.99
+) -> tuple[EstimatorParams, dict]:
+    """Choose the model's two decision thresholds on held-out boxes (never the training boxes).
+
+    occupancy_threshold: the value in 0.10..0.90 (step 0.05) with the highest median IoU.
+    hazard_threshold: among 0.10..0.99 (step 0.01), the values whose hazard recall on `dataset` is >= the
+    target, the one with the highest precision (ties: the lower threshold); if none reaches the target,
+    the one with the highest recall. Undefined when `dataset` holds no hazardous box: then 0.5 is kept.
+
+    Returns (model with both thresholds set, a dict of what was chosen and the per-threshold curves).
+    """
+    ious, haz_curve = [], []
+    true_h = None
+    predictions = _predictions(model, dataset, 1024)
+    for t in _GRID:
+        m = _per_box_metrics(model, predictions, t, 0.5)
+        true_h = m["true_hazard"]
+        ious.append(float(np.median(m["iou"])))
+    for t in _HAZARD_GRID:
+        m = _per_box_metrics(model, predictions, 0.5, t)
+        p, r = hazard_precision_recall(m["pred_hazard"], m["true_hazard"])
+        haz_curve.append((t, float(p), float(r)))
+    occ_t = _GRID[int(np.argmax(ious))]
+    haz_t = 0.5
+    if np.any(true_h):
+        ok = [c for c in haz_curve if c[2] >= hazard_recall_target and not math.isnan(c[1])]
+        if ok:
+            haz_t = max(ok, key=lambda c: (c[1], -c[0]))[0]
+        else:
+            haz_t = max(haz_curve, key=lambda c: (c[2], c[1]))[0]
+    info = {
+        "occupancy_threshold": occ_t,
+        "hazard_threshold": haz_t,
+        "hazard_recall_target": hazard_recall_target,
+        "boxes": int(len(true_h)),
+        "hazardous_boxes": int(np.sum(true_h)),
+        "iou_median_by_threshold": dict(zip(_GRID, ious, strict=True)),
+        "hazard_precision_recall_by_threshold": {t: (p, r) for t, p, r in haz_curve},
+    }
+    return dataclasses.replace(model, occupancy_threshold=occ_t, hazard_threshold=haz_t), info
 
 
 # ----------------------------------------------------------------------------------------------------------
 # Checkpoints: one compressed .npz, no pickle.
 
 FORMAT = "boxjax-estimator"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: 11-column trajectories (measured belt speeds), 20 features per step
 _META_KEY = "__meta__"
 
 
@@ -715,7 +926,7 @@ def _flat_arrays(model: EstimatorParams) -> dict[str, np.ndarray]:
 
 
 def _expected_shapes(cfg: EstimatorConfig, n_features: int, n_voxels: int) -> dict[str, tuple[int, ...]]:
-    net = jax.eval_shape(lambda k: init_net(k, n_features, n_voxels, cfg), jax.random.key(0))
+    net = jax.eval_shape(lambda k: init_members(k, n_features, n_voxels, cfg), jax.random.key(0))
     shapes = {
         f"net.{part}.{i}.{name}": tuple(arr.shape)
         for part, layers in net.items()
@@ -747,6 +958,8 @@ def save(path: str | os.PathLike, model: EstimatorParams) -> None:
         "n_steps": model.n_steps,
         "n_features": model.n_features,
         "provenance": model.provenance,
+        "occupancy_threshold": model.occupancy_threshold,
+        "hazard_threshold": model.hazard_threshold,
     }
     arrays = _flat_arrays(model)
     expected = _expected_shapes(model.cfg, model.n_features, model.box.n_voxels)
@@ -815,6 +1028,10 @@ def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) 
         box = BoxConfig(**{**b, **{k: tuple(b[k]) for k in ("size", "grid", "mass_range")}})
         n_steps, n_features = int(meta["n_steps"]), int(meta["n_features"])
         provenance = meta.get("provenance", {})
+        occupancy_threshold = float(meta.get("occupancy_threshold", 0.5))
+        hazard_threshold = float(meta.get("hazard_threshold", 0.5))
+        if not (0 < occupancy_threshold < 1 and 0 < hazard_threshold < 1):
+            raise ValueError(f"thresholds must lie in (0, 1): {occupancy_threshold}, {hazard_threshold}")
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(
             f"{path}: unreadable checkpoint metadata (corrupt, or configs this boxjax does not know): "
@@ -862,4 +1079,5 @@ def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) 
     return EstimatorParams(
         net=net, norm=norm, cfg=cfg, box=box, n_steps=n_steps,
         provenance_json=json.dumps(provenance, sort_keys=True),
+        occupancy_threshold=occupancy_threshold, hazard_threshold=hazard_threshold,
     )

@@ -143,3 +143,38 @@ def plot_episode(trace, path, balance_limit: float, target_yaw: float, title: st
     axes = fig.subplots(4, 1, sharex=True)
     plot_episode_axes(axes, trace, balance_limit, target_yaw, title)
     return save_figure(fig, path)
+
+
+def plot_demo(
+    truth,
+    belief,
+    trace,
+    path,
+    box: BoxConfig,
+    balance_limit: float,
+    target_yaw: float,
+    title: str | None = None,
+) -> str:
+    """One figure of a whole episode: true vs estimated voxel grids (paper Fig. 2 c, d) beside the yaw and
+    the balance error over time."""
+    fig = _figure((12, 6.5))
+    grid = fig.add_gridspec(2, 3)
+    plot_mass_distribution(fig.add_subplot(grid[0, 0], projection="3d"), truth, box, title="ground truth")
+    plot_mass_distribution(
+        fig.add_subplot(grid[1, 0], projection="3d"), belief, box, title="estimate", color="tab:orange"
+    )
+    ax_yaw = fig.add_subplot(grid[0, 1:])
+    ax_bal = fig.add_subplot(grid[1, 1:], sharex=ax_yaw)
+    t, s = np.asarray(trace.time), np.asarray(trace.s)
+    ax_yaw.plot(t, np.degrees(s[:, 4]), label="yaw")
+    ax_yaw.axhline(np.degrees(target_yaw), color="k", ls="--", lw=0.8, label="target")
+    ax_yaw.set_ylabel("yaw (deg)")
+    ax_yaw.legend(loc="best", fontsize=8)
+    ax_bal.plot(t, 100 * np.asarray(trace.balance_error), color="C3", label="balance error")
+    ax_bal.axhline(100 * balance_limit, color="r", ls="--", lw=0.8, label="limit")
+    ax_bal.set_ylabel("balance error (cm)")
+    ax_bal.set_xlabel("time (s)")
+    ax_bal.legend(loc="best", fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    return save_figure(fig, path)

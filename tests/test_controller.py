@@ -42,7 +42,7 @@ def test_hazard_explanation_names_region_and_centre_of_mass():
 def test_estimator_slot_is_used():
     """The controller acts on what the estimator believes, not on the truth."""
     truth = massdist.named("uniform", CFG.box)
-    believed_d = lambda exploration: massdist.named("D", CFG.box)  # noqa: E731
+    believed_d = lambda exploration: {"distribution": massdist.named("D", CFG.box), "hazardous": True}  # noqa: E731
     res = run_episode(CFG, truth, jax.random.PRNGKey(0), estimator=believed_d)
     assert res.summary["aborted"] and not res.summary["truth_hazardous"]
 

@@ -45,7 +45,9 @@ def synthetic(seed: int, n: int, box: BoxConfig = BOX, learnable: bool = True) -
     ds = np.einsum("tij,bj->bti", response, p) + rng.normal(0, 1e-4, (n, T, 5))
     s0 = np.array([-0.1, 0.1, 0, 0, 0]) + rng.normal(0, 1e-3, (n, 5))
     s = s0[:, None] + np.concatenate([np.zeros((n, 1, 5)), np.cumsum(ds, 1)], 1)
-    traj = np.concatenate([s[:, :T], np.broadcast_to(actions, (n, T, 4))], -1).astype(np.float32)
+    # Measured belt speeds: the commanded ones, slowed in proportion to the mass (as a belt servo would be).
+    belt = actions[None, :, :2] - 1e-4 * p[:, None, 4:5]
+    traj = np.concatenate([s[:, :T], np.broadcast_to(actions, (n, T, 4)), belt], -1).astype(np.float32)
     return {"traj": traj, "final": s[:, T].astype(np.float32), "occupancy": occ, "total_mass": mass}
 
 
@@ -62,18 +64,24 @@ def trained():
 
 
 def test_features_shape_and_hand_values():
-    traj = np.zeros((2, 9), np.float32)
+    traj = np.zeros((2, E.N_TRAJ_COLUMNS), np.float32)
     traj[0, :5] = (-0.1, 0.1, 0.0, 0.0, 3.1)
-    traj[0, 5:] = (0.1, -0.1, 0.002, 0.0)
+    traj[0, 5:9] = (0.1, -0.1, 0.002, 0.0)
+    traj[0, 9:] = (0.0995, -0.0990)  # measured belt speeds at the end of step 0
     traj[1, :5] = (-0.099, 0.1, 0.0, 0.0, -3.1)  # yaw crossed +-pi: a small positive turn
-    traj[1, 5:] = (0.0, 0.0, 0.0, 0.0)
-    final = np.array([-0.099, 0.1, 0.01, 0.0, -3.1], np.float32)  # moved +1 cm along world x
+    traj[1, 5:9] = (0.0, 0.0, -0.001, 0.0)
+    traj[1, 9:] = (0.0, 0.0)
+    final = np.array([-0.1, 0.1, 0.01, 0.0, -3.1], np.float32)  # moved +1 cm along world x
     f = np.asarray(E.features(jnp.asarray(traj), jnp.asarray(final))).reshape(2, E.N_STEP_FEATURES)
     assert E.features(jnp.asarray(traj), jnp.asarray(final)).shape == (2 * E.N_STEP_FEATURES,)
     np.testing.assert_allclose(f[0, :5], [0.001, 0, 0, 0, 2 * np.pi - 6.2], atol=1e-5)  # wrapped dyaw
     np.testing.assert_allclose(f[0, 7:9], [-0.1, 0.1], atol=1e-6)  # belts relative to the box centre
-    np.testing.assert_allclose(f[0, 9:11], [0.001 - 0.002, 0.0], atol=1e-6)  # belt tracking error
-    np.testing.assert_allclose(f[0, 11:], traj[0, 5:])
+    np.testing.assert_allclose(f[0, 9:11], [0.001 - 0.002, 0.0], atol=1e-6)  # carriage 1 lags 1 mm
+    np.testing.assert_allclose(f[1, 9:11], [-0.001, 0.0], atol=1e-6)  # still 1 mm behind after step 1
+    np.testing.assert_allclose(f[0, 11:13], [0.0005, -0.0010], atol=1e-6)  # belt speed lag v - w
+    np.testing.assert_allclose(f[0, 13:16], [0, 0, 2 * np.pi - 6.2], atol=1e-5)  # pose after step 0
+    np.testing.assert_allclose(f[1, 13:16], [0.01, 0, 2 * np.pi - 6.2], atol=1e-5)  # ... after step 1
+    np.testing.assert_allclose(f[0, 16:], traj[0, 5:9])
     # Step 1 at yaw ~ -pi: a world +x move is a box-frame -x move.
     np.testing.assert_allclose(f[1, 5:7], [0.01 * np.cos(-3.1), -0.01 * np.sin(-3.1)], atol=1e-6)
     assert f[1, 5] < 0
@@ -164,7 +172,7 @@ def test_predict_checked_matches_predict_and_validates(trained):
     with pytest.raises(ValueError, match="44 steps"):
         E.predict_checked(model, data["traj"][0, :44], data["final"][0])
     with pytest.raises(ValueError, match="shape"):
-        E.predict_checked(model, data["traj"][0, :, :8], data["final"][0])
+        E.predict_checked(model, data["traj"][0, :, :9], data["final"][0])
     with pytest.raises(ValueError, match="final state"):
         E.predict_checked(model, data["traj"][0], data["final"][0, :4])
     with pytest.raises(ValueError, match="shape"):
@@ -330,3 +338,62 @@ def test_load_rejects_missing_and_misshapen_arrays(checkpoint, tmp_path):
     _rewrite(checkpoint, path, lambda arrays, meta: arrays["net.trunk.0.w"].__setitem__((0, 0), np.nan))
     with pytest.raises(E.CheckpointError, match="NaN"):
         E.load(path)
+
+
+# ------------------------------------------------------------------------------------------------ decisions
+
+
+def test_calibrate_thresholds_round_trip_and_estimate(trained, tmp_path):
+    model, _ = trained
+    held_out = synthetic(8, 100)
+    calibrated, info = E.calibrate(model, held_out)
+    assert 0.1 <= calibrated.occupancy_threshold <= 0.9
+    best = max(info["iou_median_by_threshold"].values())
+    assert info["iou_median_by_threshold"][calibrated.occupancy_threshold] == best
+    assert calibrated.hazard_threshold == 0.5 and info["hazardous_boxes"] == 0  # none on this grid: kept
+    assert E.evaluate(calibrated, held_out)["iou_median"] == pytest.approx(best)
+    path = tmp_path / "h.npz"
+    E.save(path, dataclasses.replace(calibrated, hazard_threshold=0.7))
+    loaded = E.load(path)
+    assert loaded.occupancy_threshold == calibrated.occupancy_threshold and loaded.hazard_threshold == 0.7
+
+    out = E.estimate(loaded, held_out["traj"][0], held_out["final"][0])
+    assert set(out) == {"prob", "distribution", "total_mass", "hazardous"}
+    np.testing.assert_array_equal(
+        np.asarray(out["distribution"].occupancy), out["prob"] > loaded.occupancy_threshold
+    )
+    assert out["total_mass"] > 0 and isinstance(out["hazardous"], bool)
+    bad = held_out["traj"][0].copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        E.estimate(loaded, bad, held_out["final"][0])
+
+
+def test_predict_hazard_rule():
+    """Hazardous iff no voxel outside one region U1..U4 is more probable than the hazard threshold."""
+    box = BoxConfig()
+    model = E.EstimatorParams(net={}, norm=None, cfg=CFG, box=box, n_steps=T, hazard_threshold=0.6)
+    prob = jnp.full(box.grid, 0.01).at[:, 6:, :].set(0.9)  # U4 (last quarter of the width) only
+    assert bool(E.predict_hazard(model, prob))
+    assert bool(E.predict_hazard(model, prob.at[3, 3, 0].set(0.55)))  # below the threshold: still U4
+    assert not bool(E.predict_hazard(model, prob.at[3, 3, 0].set(0.65)))  # a confident voxel outside
+
+
+def test_ensemble_averages_its_members(tmp_path):
+    cfg = dataclasses.replace(CFG, members=2, max_epochs=3)
+    data = synthetic(9, 120)
+    model, history = E.train(jax.random.key(4), data, cfg, box=BOX, progress=False)
+    assert all(leaf.shape[0] == 2 for leaf in jax.tree_util.tree_leaves(model.net))
+    assert len(history["member_best_epochs"]) == 2
+    one = [dataclasses.replace(model, net=jax.tree.map(lambda a, i=i: a[i:i + 1], model.net), cfg=CFG)
+           for i in range(2)]
+    traj, final = jnp.asarray(data["traj"][:4]), jnp.asarray(data["final"][:4])
+    probs, masses = zip(*(E.predict_batch(m, traj, final) for m in one), strict=True)
+    prob, mass = E.predict_batch(model, traj, final)
+    np.testing.assert_allclose(prob, (probs[0] + probs[1]) / 2, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(mass, (masses[0] + masses[1]) / 2, rtol=1e-5)
+    assert not np.allclose(probs[0], probs[1])  # the members differ
+    E.save(tmp_path / "ens.npz", model)
+    loaded = E.load(tmp_path / "ens.npz", expected_box_config=BOX)
+    assert loaded.cfg.members == 2
+    jax.tree.map(np.testing.assert_array_equal, E.predict_batch(loaded, traj, final), (prob, mass))

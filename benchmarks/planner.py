@@ -1,0 +1,100 @@
+"""Planner latency: one MPC step (sample, predict with the physics prior, Pareto front, select).
+
+Prints ONE JSON object: compile time, per-step latency for 50 actions (median and p99 over >= 200 calls
+after compile, each call waited on with block_until_ready), the latency for 4096 actions, and the
+backend / device. Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import calibrate, massdist, planner, prior
+from boxjax.config import DEFAULT
+
+
+def _latency(fn, args_for_call, calls: int) -> dict:
+    times = []
+    for i in range(calls):
+        args = args_for_call(i)
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    ms = 1e3 * np.asarray(times)
+    return {
+        "median_ms": float(np.median(ms)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "mean_ms": float(ms.mean()),
+        "calls": calls,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--calls", type=int, default=300, help="timed calls per setting (>= 200)")
+    ap.add_argument("--variant", default="slip", choices=prior.VARIANTS)
+    ap.add_argument("--rule", default="random", choices=planner.RULES)
+    ap.add_argument("--horizon", type=int, default=1)
+    args = ap.parse_args()
+    calls = max(args.calls, 200)
+    cfg = DEFAULT
+    box, gripper = cfg.box, cfg.gripper
+    masses = massdist.voxel_masses(massdist.named("A", box), box)
+    fm = calibrate.ForceMap(
+        grid=jnp.asarray(calibrate.default_grid(gripper, 9)),
+        mean=jnp.zeros((4, 9)),
+        std=jnp.zeros((4, 9)),
+        count=jnp.ones((4, 9), jnp.int32),
+    )
+    model = prior.make_prior(masses, fm, box, gripper, variant=args.variant)
+    # A box part-way through a turn: moving, rotating, belts running.
+    s = jnp.array([-0.11, 0.12, 0.01, -0.005, 0.4])
+    window = jnp.stack(
+        [s - 2 * jnp.array([0, 0, 1e-3, 5e-4, 0.02]), s - jnp.array([0, 0, 1e-3, 5e-4, 0.02]), s]
+    )
+    speed = jnp.array([0.12, -0.1])
+    target = jnp.float32(np.pi / 2)
+    keys = jax.random.split(jax.random.key(0), calls)
+
+    out = {
+        "benchmark": "planner step (random shooting + physics prior + Pareto selection)",
+        "variant": args.variant,
+        "prior_params": {k: v for k, v in vars(model.params).items()},
+        "rule": args.rule,
+        "horizon": args.horizon,
+    }
+    plan50 = planner.make_planner(cfg, n_samples=50, rule=args.rule, horizon=args.horizon)
+    t0 = time.perf_counter()
+    jax.block_until_ready(plan50(keys[0], model, window, speed, target))
+    out["compile_s_50"] = time.perf_counter() - t0
+    out["latency_50_actions"] = _latency(plan50, lambda i: (keys[i], model, window, speed, target), calls)
+
+    # 4096 actions: a finer restricted set (63 x 63 speed increments + 2 x 64 position steps = 4097).
+    big = planner.action_set(gripper, n_v=63, n_p=64)
+    plan4096 = planner.make_planner(cfg, actions=big, n_samples=4096, rule=args.rule, horizon=args.horizon)
+    t0 = time.perf_counter()
+    jax.block_until_ready(plan4096(keys[0], model, window, speed, target))
+    out["compile_s_4096"] = time.perf_counter() - t0
+    out["latency_4096_actions"] = _latency(
+        plan4096, lambda i: (keys[i], model, window, speed, target), min(calls, 50)
+    )
+    dev = jax.devices()[0]
+    out["backend"] = jax.default_backend()
+    out["device"] = f"{dev.platform}:{getattr(dev, 'device_kind', '')}"
+    out["cpu_count"] = os.cpu_count()
+    out["load_avg_1m"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    out["jax"] = jax.__version__
+    out["python"] = platform.python_version()
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

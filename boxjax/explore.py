@@ -1,0 +1,222 @@
+"""The fixed exploration phase (paper §2.2): 15 control vectors, each held 3 control steps (45 steps).
+
+Every episode starts with the same open-loop sequence. It turns and shifts a uniform box a little, and is
+built so that what the box does (and what the belts feel) depends as much as possible on where its mass
+sits. The estimator H (`boxjax.estimator`) reads the resulting trajectory.
+
+Physics that the design follows (DESIGN.md, `boxjax.sim.model`):
+  * Under Coulomb friction the box's motion does not depend on its total mass: mass cancels. A slipping
+    belt i pulls on the box with mu * N_i, N_i the normal load it carries, so WHERE the mass sits shows in
+    how the box turns and drifts when the belts move differently (the split N1 / N2 along y, the pressure
+    centre along x within each contact patch).
+  * The total MASS shows only through the drives' servo lag: a belt that slips under the box is slowed by
+    mu * N_i / kv (kv = 2e4 N s/m: up to ~1.2 mm/s for 10 kg), and a carriage that drags or slips under
+    the box lags its target by the lateral friction / kp (kp = 5e4 N/m: up to ~0.5 mm). Both are measured
+    (the belt speeds, P1 and P2), so the phases below keep at least one belt slipping most of the time.
+  * The height of the centre of mass shows only while the box accelerates: the inertial force at the
+    centre of mass, mu * g at most, tilts the load between the belts (or front to back) by about
+    M a h / d. Phases that combine a sideways carriage move (the box slides sideways at ~mu g) with
+    opposite belt speeds (the rotation then depends on the load split) expose it.
+  * Belt setpoints move by at most belt_accel_limit * control_dt = 0.03 m/s per step, so a vector held 3
+    steps reaches a setpoint up to 0.09 m/s away; the table never asks for more (no clipping with the
+    default config). Carriage steps are at most 1 cm per step.
+
+The sequence (v in m/s along belt travel +x; dp in m along y per step; "CCW" = yaw increasing, left belt
++x and right belt -x). Measured effect on the named boxes (`describe_effect`, default config): uniform
+turns +10.8 deg and moves 1.5 cm, worst balance error 0.8 cm; A / B / C / D: +7.0 / +8.3 / +0.9 / -0.7 deg,
+worst balance error 0.8 / 1.0 / 1.4 / 1.1 cm. Over random boxes (`boxjax.dataset`, 600 boxes, 25 %
+drawn hazardous) the worst balance error during the phase has median 1.6 cm; 95 % of the non-hazardous
+boxes stay under 2.8 cm. Every carriage move is undone, so the belts end where they started
+(P1 = -0.10, P2 = +0.10 m), and at rest.
+
+ #    v1     v2     dp1     dp2    why
+---  -----  -----  ------  ------  ------------------------------------------------------------------------
+ 1   +0.09  -0.09       0       0  spin up CCW from rest: the onset of slip and the turn's transient
+ 2   +0.12  -0.12       0       0  steady opposite slip: the turn's centre (so the y drift per radian) follows
+                                   the pressure centre along x (COM x), the x drift the load split between the
+                                   belts (COM y); both belts lag by mu N_i / kv (mass)
+ 3   +0.09  -0.09  +0.004  +0.004  keep turning while both carriages shift +y: the box slides sideways at ~mu
+                                   g and the inertial force at the COM moves load between the belts (COM
+                                   height), which bends the turn
+ 4   +0.09  -0.09  -0.004  -0.004  the same shifting back: the opposite load transfer; carriages back at the
+                                   start
+ 5       0      0       0       0  ramp both belts down: the box decelerates with them (transient)
+ 6   +0.09      0       0       0  left belt alone: the box turns about the right belt if that one carries
+                                   more load, or rides with the left belt if not (sign and size of N1 - N2);
+                                   belt 1 lags by mu N1 / kv
+ 7       0  +0.09       0       0  right belt alone (the left ramps down): the mirror test, N2 - N1 and mu N2
+                                   / kv
+ 8       0      0  +0.007       0  left carriage in by 2.1 cm (the right belt ramps down): drags the box +y
+                                   only if N1 > N2; carriage 1 lags by mu N1 / kp (mass)
+ 9       0      0  -0.007       0  left carriage back out: the same force reversed
+10       0      0       0  -0.007  right carriage in: drags the box -y only if N2 > N1; carriage 2 lags by mu
+                                   N2 / kp
+11       0      0       0  +0.007  right carriage back out
+12       0      0  +0.007  -0.007  squeeze (both in): the belt under more load pushes the box towards the
+                                   other (net mu (N1 - N2)); both carriage lags
+13       0      0  -0.007  +0.007  release
+14       0      0  +0.004  +0.004  both carriages shift +y under the resting box: it slides at ~mu g on both
+                                   belts, so the two carriage lags add up to mu M g / kp (mass) and split by
+                                   the load transfer (COM height)
+15       0      0  -0.004  -0.004  back: the box ends at rest, the belts at their start
+
+Why this sequence: it was chosen by measurement among six candidates (the same 2000 training / 600 test
+boxes each, H trained the same way): variants with a faster or longer turn, or 3 cm single-carriage
+moves, gave H up to +0.03 median IoU and -0.2 cm centre-of-mass error but pushed the worst balance error
+of 3-18 % of the NON-hazardous boxes past the 4 cm limit during exploration; with this one 1.5 % of them
+cross it (boxes whose mass sits mostly over one belt), 95 % stay under 2.8 cm. About a quarter of the
+HAZARDOUS boxes cross it during exploration (the episode then ends as unbalanced). The centre of mass
+along x shows only as the y drift per radian of turn, i.e. as balance error, so that trade-off is
+physical. Training H on parts of a candidate showed every block contributing
+(turns, one-belt drives and carriage moves each alone reach 0.36-0.45 median IoU, all together ~0.53).
+
+`exploration_actions(cfg)` gives the (45, 4) commanded actions; `applied_actions(cfg)` what the simulator
+applies after the acceleration limit (the `actions` a rollout reports); `trajectory(...)` turns a rollout's
+observations into the estimator's input; `run(env, state)` runs the phase on one environment.
+What the sequence does to the named boxes (uniform, A-D) is measured in `tests/test_explore.py` and
+reported by `describe_effect`.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax.config import DEFAULT, Config
+from boxjax.sim import core
+
+HOLD = 3  # control steps each vector is held (paper §2.2)
+
+# (v1, v2, dp1, dp2): m/s, m/s, m, m. Reasons in the module docstring's table, same order.
+VECTORS = np.array(
+    [
+        [+0.09, -0.09, 0.000, 0.000],
+        [+0.12, -0.12, 0.000, 0.000],
+        [+0.09, -0.09, +0.004, +0.004],
+        [+0.09, -0.09, -0.004, -0.004],
+        [0.00, 0.00, 0.000, 0.000],
+        [+0.09, 0.00, 0.000, 0.000],
+        [0.00, +0.09, 0.000, 0.000],
+        [0.00, 0.00, +0.007, 0.000],
+        [0.00, 0.00, -0.007, 0.000],
+        [0.00, 0.00, 0.000, -0.007],
+        [0.00, 0.00, 0.000, +0.007],
+        [0.00, 0.00, +0.007, -0.007],
+        [0.00, 0.00, -0.007, +0.007],
+        [0.00, 0.00, +0.004, +0.004],
+        [0.00, 0.00, -0.004, -0.004],
+    ],
+    dtype=np.float64,
+)
+N_VECTORS = len(VECTORS)
+N_STEPS = N_VECTORS * HOLD  # 45
+N_TRAJ_COLUMNS = 11  # s (5), applied action (4), measured belt speeds at the end of the step (2)
+
+
+def exploration_actions(cfg: Config = DEFAULT) -> np.ndarray:
+    """(45, 4) float32 commanded actions (v1, v2, dp1, dp2) in m/s, m/s, m, m: each of the 15 vectors
+    repeated 3 times. Values beyond the config's belt speed limit or position step are clipped to them
+    (never the case with the default config)."""
+    g = cfg.gripper
+    lim = np.array([g.belt_speed_limit, g.belt_speed_limit, g.max_position_step, g.max_position_step])
+    return np.clip(np.repeat(VECTORS, HOLD, axis=0), -lim, lim).astype(np.float32)
+
+
+@partial(jax.jit, static_argnums=0)
+def _applied(cfg: Config, actions):
+    def body(carry, a):
+        speed, p_target = carry
+        ctrl, new_target, _, _ = core.command(cfg, a, speed, p_target)
+        new_speed = jnp.clip(
+            speed + ctrl[:2] * cfg.gripper.control_dt, -cfg.gripper.belt_speed_limit,
+            cfg.gripper.belt_speed_limit,
+        )
+        applied = jnp.concatenate([new_speed, new_target - p_target])
+        return (new_speed, new_target), applied
+
+    p0 = jnp.asarray(cfg.gripper.belt_y0, actions.dtype)
+    return jax.lax.scan(body, (jnp.zeros(2, actions.dtype), p0), actions)[1]
+
+
+def applied_actions(cfg: Config = DEFAULT) -> np.ndarray:
+    """(45, 4) float32 actions as the simulator applies them to a gripper starting at rest with the belts
+    at `belt_y0`: belt speed columns are the ramped setpoints reached at the end of each step (at most
+    belt_accel_limit * control_dt away from the previous one), position columns the increments after
+    clipping to the belt ranges. Equal to the `actions` that `boxjax.sim.native.rollout` reports."""
+    return np.asarray(_applied(cfg, jnp.asarray(exploration_actions(cfg), jnp.float32)), np.float32)
+
+
+def trajectory(s, belt_speed, actions):
+    """The estimator's input from ONE exploration rollout (pure; vmap for batches).
+
+    Args:
+      s: (T+1, 5) planar states (P1, P2, x, y, yaw) before each step and after the last (m, m, m, m, rad).
+      belt_speed: (T+1, 2) measured belt surface speeds (m/s) at the same instants.
+      actions: (T, 4) applied actions (see `applied_actions`).
+    Returns:
+      traj (T, 11) float32: row t = [s_t (5), a_t (4), belt speeds measured at the END of step t (2)];
+      final (5,) float32: s_T.
+    """
+    s = jnp.asarray(s, jnp.float32)
+    traj = jnp.concatenate(
+        [s[:-1], jnp.asarray(actions, jnp.float32), jnp.asarray(belt_speed, jnp.float32)[1:]], axis=-1
+    )
+    return traj, s[-1]
+
+
+def run(env, state: core.State, cfg: Config | None = None):
+    """Run the exploration phase on ONE environment (native or MJX) from `state` (just after reset).
+
+    Returns (state after the phase, traj (45, 11) numpy, final (5,) numpy). If the episode ends during the
+    phase (e.g. a hazardous box goes out of balance), the environment freezes the state and the remaining
+    rows repeat it; check `state.done`.
+    """
+    cfg = env.cfg if cfg is None else cfg
+    step = env.step_checked if hasattr(env, "step_checked") else env.step
+    states, speeds = [np.asarray(state.s)], [np.asarray(state.belt_speed)]
+    for a in exploration_actions(cfg):
+        state = step(state, a)
+        states.append(np.asarray(state.s))
+        speeds.append(np.asarray(state.belt_speed))
+    traj, final = trajectory(np.stack(states), np.stack(speeds), applied_actions(cfg))
+    return state, np.asarray(traj), np.asarray(final)
+
+
+def describe_effect(cfg: Config = DEFAULT, names=("uniform", "A", "B", "C", "D")) -> dict:
+    """What the phase does to the named boxes (native rollout): per name, the final planar state change
+    (dx, dy in cm, dyaw in degrees), the largest balance error over the phase (cm) and whether any
+    action was clipped."""
+    from boxjax import geometry, massdist
+    from boxjax.sim import native
+
+    dists = [massdist.named(n, cfg.box) for n in names]
+    out = native.rollout(cfg, dists, exploration_actions(cfg))
+    bal = np.abs(out["s"][..., geometry.Y] - 0.5 * (out["s"][..., geometry.P1] + out["s"][..., geometry.P2]))
+    d = out["s"][:, -1] - out["s"][:, 0]
+    return {
+        n: {
+            "dx_cm": round(float(100 * d[i, geometry.X]), 2),
+            "dy_cm": round(float(100 * d[i, geometry.Y]), 2),
+            "dyaw_deg": round(float(np.degrees(d[i, geometry.YAW])), 2),
+            "max_balance_error_cm": round(float(100 * bal[i].max()), 2),
+            "clipped": bool(out["clipped"][i].any()),
+        }
+        for i, n in enumerate(names)
+    }
+
+
+__all__ = [
+    "HOLD",
+    "N_STEPS",
+    "N_TRAJ_COLUMNS",
+    "N_VECTORS",
+    "VECTORS",
+    "applied_actions",
+    "describe_effect",
+    "exploration_actions",
+    "run",
+    "trajectory",
+]

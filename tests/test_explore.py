@@ -1,0 +1,110 @@
+"""The fixed exploration phase: its shape and limits, what the simulator applies, and what it does to the
+named boxes (turns and shifts them a little, safely)."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from boxjax import explore, geometry, massdist
+from boxjax.config import DEFAULT
+from boxjax.sim import make_env
+from boxjax.sim.native import rollout
+
+CFG = DEFAULT
+NAMES = ("uniform", "A", "B", "C", "D")
+
+
+@pytest.fixture(scope="module")
+def named_rollout():
+    dists = [massdist.named(n, CFG.box) for n in NAMES]
+    return rollout(CFG, dists, explore.exploration_actions(CFG))
+
+
+def test_fifteen_vectors_held_three_steps_within_limits():
+    a = explore.exploration_actions(CFG)
+    assert a.shape == (45, 4) == (explore.N_STEPS, 4) and a.dtype == np.float32
+    assert explore.N_VECTORS == 15 and explore.HOLD == 3
+    np.testing.assert_array_equal(a.reshape(15, 3, 4), np.repeat(a[::3][:, None], 3, axis=1))
+    g = CFG.gripper
+    assert np.all(np.abs(a[:, :2]) <= g.belt_speed_limit)
+    assert np.all(np.abs(a[:, 2:]) <= g.max_position_step + 1e-9)
+    # Every setpoint is reachable within its 3-step hold under the acceleration limit.
+    v = np.concatenate([np.zeros((1, 2)), explore.VECTORS[:, :2]])
+    assert np.all(np.abs(np.diff(v, axis=0)) <= explore.HOLD * g.belt_accel_limit * g.control_dt + 1e-9)
+    # Belts end where they started, at rest; both carriages stay inside their ranges all along.
+    np.testing.assert_allclose(a[:, 2:].sum(axis=0), 0.0, atol=1e-7)
+    np.testing.assert_array_equal(a[-1, :2], 0.0)
+    p = np.asarray(g.belt_y0) + np.cumsum(a[:, 2:], axis=0)
+    assert np.all((p[:, 0] >= g.p1_range[0]) & (p[:, 0] <= g.p1_range[1]))
+    assert np.all((p[:, 1] >= g.p2_range[0]) & (p[:, 1] <= g.p2_range[1]))
+
+
+def test_applied_actions_match_the_simulator(named_rollout):
+    applied = explore.applied_actions(CFG)
+    assert applied.shape == (45, 4)
+    for b in range(len(NAMES)):
+        np.testing.assert_allclose(named_rollout["actions"][b], applied, atol=1e-6)
+    assert not named_rollout["clipped"].any()
+    # Speeds reach each vector's setpoint by the end of its hold; position increments are as commanded.
+    np.testing.assert_allclose(applied[2::3, :2], explore.VECTORS[:, :2], atol=1e-6)
+    np.testing.assert_allclose(applied[:, 2:], explore.exploration_actions(CFG)[:, 2:], atol=1e-7)
+
+
+def test_turns_and_shifts_a_uniform_box_slightly_and_safely(named_rollout):
+    s = named_rollout["s"]
+    bal = np.abs(s[..., geometry.Y] - 0.5 * (s[..., geometry.P1] + s[..., geometry.P2]))
+    d = s[:, -1] - s[:, 0]
+    u = NAMES.index("uniform")
+    assert 1.0 < np.degrees(d[u, geometry.YAW]) < 30.0  # a small counter-clockwise turn
+    assert np.hypot(d[u, geometry.X], d[u, geometry.Y]) < 0.05
+    assert bal[u].max() < 0.02
+    for name in ("A", "B", "C"):  # typical boxes: well inside the 4 cm limit
+        assert bal[NAMES.index(name)].max() < 0.03, name
+    # The belts are back where they started.
+    np.testing.assert_allclose(s[:, -1, :2], np.tile(CFG.gripper.belt_y0, (len(NAMES), 1)), atol=1e-3)
+
+
+def test_different_boxes_leave_different_trajectories(named_rollout):
+    """What the estimator needs: the phase tells the boxes apart (final poses differ by centimetres or
+    degrees between the named boxes)."""
+    final = named_rollout["s"][:, -1, 2:]
+    for i in range(len(NAMES)):
+        for j in range(i + 1, len(NAMES)):
+            gap = np.abs(final[i] - final[j])
+            assert gap[:2].max() > 0.003 or gap[2] > np.radians(0.5), (NAMES[i], NAMES[j])
+
+
+def test_trajectory_layout():
+    s = np.arange(3 * 5, dtype=np.float32).reshape(3, 5)
+    w = np.arange(3 * 2, dtype=np.float32).reshape(3, 2) + 100
+    a = np.arange(2 * 4, dtype=np.float32).reshape(2, 4) + 50
+    traj, final = explore.trajectory(s, w, a)
+    assert traj.shape == (2, explore.N_TRAJ_COLUMNS) and final.shape == (5,)
+    np.testing.assert_array_equal(traj[:, :5], s[:2])
+    np.testing.assert_array_equal(traj[:, 5:9], a)
+    np.testing.assert_array_equal(traj[:, 9:], w[1:])  # belt speeds measured at the END of each step
+    np.testing.assert_array_equal(final, s[2])
+    batched = jax.vmap(explore.trajectory)(s[None], w[None], a[None])
+    np.testing.assert_array_equal(batched[0][0], traj)
+
+
+def test_run_on_one_env_matches_the_batched_rollout(named_rollout):
+    env = make_env(CFG, "native")
+    u = NAMES.index("uniform")
+    state = env.reset(jax.random.PRNGKey(0), massdist.named("uniform", CFG.box))
+    state, traj, final = explore.run(env, state)
+    assert traj.shape == (45, 11) and not bool(state.done)
+    ref, ref_final = explore.trajectory(
+        named_rollout["s"][u], named_rollout["belt_speed"][u], named_rollout["actions"][u]
+    )
+    np.testing.assert_allclose(traj, ref, atol=2e-4)
+    np.testing.assert_allclose(final, ref_final, atol=2e-4)
+
+
+def test_describe_effect_reports_every_named_box():
+    eff = explore.describe_effect(CFG, names=("uniform", "D"))
+    assert set(eff) == {"uniform", "D"}
+    assert set(eff["uniform"]) == {"dx_cm", "dy_cm", "dyaw_deg", "max_balance_error_cm", "clipped"}
+    assert eff["uniform"]["clipped"] is False

@@ -1,0 +1,347 @@
+"""The physics-prior predictor (paper §2.3): hand-computed cases, guards, gradients, batching."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from boxjax import calibrate, geometry, massdist, planner, prior
+from boxjax.calibrate import ForceMap
+from boxjax.config import DEFAULT
+
+BOX, G = DEFAULT.box, DEFAULT.gripper
+DT = G.control_dt
+REST = jnp.array([-0.1, 0.1, 0.0, 0.0, 0.0])
+# Compiled once per PriorParams (static) and shared by the tests: compiling dominates their run time.
+batched = jax.jit(jax.vmap(prior.predict, in_axes=(None, None, None, 0)))
+explain = jax.jit(prior.explain)
+
+
+def one(model, window, belt_speed, action):
+    return explain(model, window, belt_speed, action)[0]
+
+
+def _const_map(f1=0.0, f2=0.0, f3=0.0, f4=0.0):
+    """A force map that returns the same forces for every action value."""
+    grid = jnp.asarray(calibrate.default_grid(G, 3))
+    mean = jnp.tile(jnp.array([f1, f2, f3, f4])[:, None], (1, 3))
+    return ForceMap(grid, mean, jnp.zeros_like(mean), jnp.ones((4, 3), jnp.int32))
+
+
+def _linear_map():
+    grid = jnp.asarray(calibrate.default_grid(G, 5))
+    mean = grid * jnp.array([300.0, 300.0, 2000.0, 2000.0])[:, None]
+    return ForceMap(grid, mean, jnp.zeros_like(mean), jnp.ones((4, 5), jnp.int32))
+
+
+def _uniform():
+    return massdist.voxel_masses(massdist.named("uniform", BOX), BOX)
+
+
+def _heavy(i, j, k=0, m=2.0):
+    return jnp.full(BOX.grid, BOX.voxel_eps).at[i, j, k].add(m)
+
+
+def _moving_window(v=(0.02, -0.01), omega=0.3, s=REST):
+    """Three states of a box moving with constant velocity and yaw rate."""
+    k = jnp.arange(3.0)[:, None] - 2
+    d = jnp.concatenate([jnp.zeros((3, 2)), k * DT * jnp.array([*v, omega])], axis=1)
+    return s[None] + d
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Hand-computed cases.
+
+
+def test_heavy_voxel_mass_properties():
+    model = prior.make_prior(_heavy(2, 1, 0), None, BOX, G)
+    c = massdist.voxel_centres(BOX)[2, 1, 0]
+    assert np.allclose(np.asarray(model.com), c, atol=2e-4)
+    dx, dy, _ = BOX.voxel_size
+    own = 2.0 * (dx**2 + dy**2) / 12
+    assert float(model.izz) == pytest.approx(own, rel=0.2)  # plus the eps of the other 255 voxels
+    assert float(model.column_mass[2, 1]) == pytest.approx(2.0 + 4 * BOX.voxel_eps)
+
+
+@pytest.mark.parametrize("row, torque_sign", [(1, 0), (0, -1)])
+def test_paper_single_heavy_voxel_under_f1(row, torque_sign):
+    # One 2 kg voxel over belt 1 (rows 0..2 are S1 at yaw 0), F1 = 20 N along x on S1, box at rest.
+    # Friction (eqs. 11-13) at rest opposes the frictionless displacement, mu g per kg of V1 / V2.
+    masses = _heavy(3, row)
+    model = prior.make_prior(masses, _const_map(f1=20.0), BOX, G, variant="paper")
+    s_next, info = explain(model, prior.initial_window(REST), jnp.zeros(2), jnp.zeros(4))
+    assert np.allclose(np.asarray(info["forces"]), [20.0, 0, 0, 0])
+    m = float(jnp.sum(masses))
+    # The heavy voxel's column dominates the friction: beta ~ -mu g (2 kg) / M along x.
+    beta_x = float(info["beta"][0])
+    assert beta_x == pytest.approx(-G.friction * G.gravity * 2.0 / m, rel=0.02)
+    ax = 20.0 / m + beta_x
+    # Centre of mass: r_c' = r_c + (F / M + beta) dt^2 / 2 (eq. 14 from rest; 0r''_c = 0).
+    rc = s_next[2:4] + calibrate.rot2(s_next[geometry.YAW]) @ model.com[:2] - model.com[:2]
+    assert float(rc[0]) == pytest.approx(0.5 * ax * DT**2, rel=1e-3)
+    assert abs(float(rc[1])) < 1e-4
+    # Torque of F1 about the centre of mass: -(mean y of S1 - y_c) F1 (eq. 8). Row 1 is S1's centroid
+    # row: ~0 (up to the eps masses); row 0 is outside it: negative.
+    yaw = float(s_next[geometry.YAW])
+    if torque_sign == 0:
+        assert abs(yaw) < 0.01
+    else:
+        assert yaw < -0.1  # a 2 kg point-like mass has a tiny I_zz: a large turn in one step
+
+
+def test_paper_symmetric_uniform_box_opposite_forces():
+    # Uniform box, F1 = +F on S1 (y < 0), F2 = -F on S2 (y > 0): zero net force; torque
+    # sum_S1 (-y) F / |S1| + sum_S2 (-y)(-F) / |S2| = F (mean y of S2 - mean y of S1) = 0.1875 F (> 0),
+    # friction torque at rest -mu g sum_V m_col |r_col| (eq. 11 opposes the rotation).
+    F = 40.0
+    masses = _uniform()
+    model = prior.make_prior(masses, _const_map(f1=F, f2=-F), BOX, G, variant="paper")
+    s_next, info = explain(model, prior.initial_window(REST), jnp.zeros(2), jnp.zeros(4))
+    s1, s2 = geometry.contact_masks(REST, BOX, G)
+    yc = geometry.bottom_voxel_centres_xy(BOX)
+    mean_y1 = float(np.sum(np.asarray(s1) * yc[..., 1]) / np.sum(np.asarray(s1)))
+    mean_y2 = float(np.sum(np.asarray(s2) * yc[..., 1]) / np.sum(np.asarray(s2)))
+    assert mean_y2 - mean_y1 == pytest.approx(0.1875)
+    tau = F * (mean_y2 - mean_y1)
+    col = np.asarray(jnp.sum(masses, axis=2))
+    v = np.asarray(s1 + s2)
+    tau_f = -G.friction * G.gravity * np.sum(v * col * np.linalg.norm(yc, axis=-1))
+    izz = float(jnp.sum(masses)) * (0.4**2 + 0.3**2) / 12
+    assert float(model.izz) == pytest.approx(izz, rel=1e-4)
+    yaw = 0.5 * (tau + tau_f) / izz * DT**2
+    assert yaw > 0
+    assert float(s_next[geometry.YAW]) == pytest.approx(yaw, rel=1e-3)
+    assert np.allclose(np.asarray(s_next[2:4]), 0.0, atol=1e-6)  # zero net force: no translation
+    assert np.allclose(np.asarray(info["friction"]).sum(0), 0.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("contact", ["polygon", "voxels"])
+def test_slip_symmetric_uniform_box_opposite_belts(contact):
+    # Belts running at +-0.2 m/s under a box at rest: symmetric slip, zero net force, positive torque
+    # (belt 1 at y < 0 pushes +x). Upper bound on the turn: the torque of full slip, mu (M g / 2) x the
+    # load-weighted |y| of each patch (~0.1 m) x 2, over I_zz, for the whole step.
+    model = prior.make_prior(_uniform(), None, BOX, G, contact=contact)
+    speed = jnp.array([0.2, -0.2])
+    s_next, info = explain(model, prior.initial_window(REST), speed, jnp.array([0.2, -0.2, 0, 0]))
+    assert np.allclose(np.asarray(s_next[2:4]), 0.0, atol=1e-5)
+    assert np.allclose(np.asarray(info["normal_load"]), 5.0 * G.gravity / 2, rtol=1e-3)
+    f = np.asarray(info["forces"])
+    assert f[0] > 0 > f[1] and f[0] == pytest.approx(-f[1], rel=1e-3)
+    izz = 5.0 * (0.4**2 + 0.3**2) / 12
+    upper = 0.5 * (G.friction * 5.0 * G.gravity * 0.1) / izz * DT**2
+    yaw = float(s_next[geometry.YAW])
+    assert 0.3 * upper < yaw < upper
+
+
+@pytest.mark.parametrize("contact", ["polygon", "voxels"])
+def test_slip_box_sticks_to_accelerating_belts(contact):
+    # Both belts accelerate at 0.6 m/s^2 < mu g = 4.9 m/s^2: the box follows them without slipping
+    # (heavy voxel anywhere, no rotation): x after one step = a dt^2 / 2 = 0.75 mm and the box ends at
+    # the belt speed a dt = 0.03 m/s. (A box sliding at mu g would overshoot; one not dragged would stay.)
+    a = G.belt_accel_limit
+    for masses in (_uniform(), _heavy(6, 1, 2, m=4.0)):
+        model = prior.make_prior(masses, None, BOX, G, contact=contact)
+        s_next, info = explain(model, prior.initial_window(REST), jnp.zeros(2), jnp.array([0.2, 0.2, 0, 0]))
+        assert float(s_next[geometry.X]) == pytest.approx(0.5 * a * DT**2, rel=0.03)
+        assert float(info["com_velocity"][0]) == pytest.approx(a * DT, rel=0.03)
+        assert abs(float(s_next[geometry.YAW])) < 2e-4
+        assert abs(float(s_next[geometry.Y])) < 2e-5
+
+
+def test_slip_box_moving_with_belts_keeps_moving():
+    v = 0.1
+    model = prior.make_prior(_uniform(), None, BOX, G)
+    w = _moving_window(v=(v, 0.0), omega=0.0)
+    s_next = one(model, w, jnp.array([v, v]), jnp.array([v, v, 0.0, 0.0]))
+    assert np.allclose(np.asarray(s_next[2:]), [v * DT, 0.0, 0.0], atol=2e-5)
+
+
+def test_slip_position_step_drags_box_sideways():
+    # Belt 2 moves +1 cm: P2 follows, the box moves +y but less than the belt (belt 1 holds it back).
+    model = prior.make_prior(_uniform(), None, BOX, G)
+    s_next = one(model, prior.initial_window(REST), jnp.zeros(2), jnp.array([0.0, 0.0, 0.0, 0.01]))
+    assert float(s_next[geometry.P2]) == pytest.approx(0.11)
+    assert float(s_next[geometry.P1]) == pytest.approx(-0.1)
+    assert 0.0 < float(s_next[geometry.Y]) < 0.01
+
+
+def test_belt_positions_clipped_to_range():
+    model = prior.make_prior(_uniform(), None, BOX, G)
+    s = jnp.array([G.p1_range[0] + 0.002, G.p2_range[1] - 0.001, 0.0, 0.0, 0.0])
+    s_next = one(model, prior.initial_window(s), jnp.zeros(2), jnp.array([0.0, 0.0, -0.01, 0.01]))
+    assert np.allclose(np.asarray(s_next[:2]), [G.p1_range[0], G.p2_range[1]])
+
+
+def test_friction_jacobian_matches_finite_differences():
+    key = jax.random.key(3)
+    k1, k2, k3, k4 = jax.random.split(key, 4)
+    u = jax.random.normal(k1, (3,)) * 0.1
+    ub = jax.random.normal(k2, (2, 2)) * 0.1
+    off = jax.random.normal(k3, (2, 12, 2)) * 0.1
+    loads = jax.random.uniform(k4, (2, 12))
+
+    ff = jax.jit(prior.friction_force, static_argnums=(4, 5))  # one compile for all evaluations
+    force, jac, per_belt, _, _ = ff(u, ub, off, loads, 0.5, 1e-3)
+    h = 1e-3  # central differences (float32: truncation and round-off both well below the tolerance)
+    auto = np.stack(
+        [
+            (
+                np.asarray(ff(u + h * e, ub, off, loads, 0.5, 1e-3)[0])
+                - np.asarray(ff(u - h * e, ub, off, loads, 0.5, 1e-3)[0])
+            )
+            / (2 * h)
+            for e in jnp.eye(3)
+        ],
+        axis=1,
+    )
+    assert np.allclose(np.asarray(jac), auto, rtol=2e-2, atol=2e-2)
+    assert np.allclose(np.asarray(per_belt.sum(0)), np.asarray(force[:2]), atol=1e-5)
+
+
+def test_contact_fractions_match_masks_at_yaw_zero():
+    fr = np.asarray(prior.contact_fractions(REST, BOX, G))
+    s1, s2 = (np.asarray(m) for m in geometry.contact_masks(REST, BOX, G))
+    # Rows 0, 1 fully on belt 1; row 2 covers y in [-0.075, -0.0375], the belt ends at -0.05: 2/3.
+    assert np.allclose(fr[0][:, :2], 1.0, atol=5e-3) and np.allclose(fr[0][:, 2], 2 / 3, atol=1e-3)
+    assert np.allclose(fr[0][:, 3:], 0.0)
+    assert np.array_equal(fr[0] > 0.5, s1 > 0) and np.array_equal(fr[1] > 0.5, s2 > 0)
+    # Rotated: total area over a belt is about the belt area under the box (belt strip x box).
+    s = REST.at[geometry.YAW].set(0.7)
+    fr = np.asarray(prior.contact_fractions(s, BOX, G))
+    assert np.all((fr >= 0) & (fr <= 1))
+
+
+def test_polygon_contacts():
+    model = prior.make_prior(_uniform(), None, BOX, G)
+    polygon_contacts = jax.jit(prior.polygon_contacts)
+    c = polygon_contacts(model, REST)
+    # Yaw 0, belts at +-0.1 m (0.10 wide): each belt touches [-0.2, 0.2] x [+-0.05, +-0.15] at 4 corners.
+    for i, sign in ((0, -1), (1, 1)):
+        pts = np.asarray(c.offsets[i])[np.asarray(c.weights[i]) > 0]
+        expect = {(x, sign * y) for x in (-0.2, 0.2) for y in (0.05, 0.15)}
+        assert {(round(float(p[0]), 4), round(float(p[1]), 4)) for p in pts} == expect
+    # Turned 0.6 rad: 4 vertices per belt, where the box's long edges cross the belt's edges.
+    s = REST.at[geometry.YAW].set(0.6)
+    c = polygon_contacts(model, s)
+    assert np.asarray(c.weights).sum(axis=1).tolist() == [4.0, 4.0]
+    world = np.asarray(geometry.box_to_world_xy(s, c.offsets + model.com[:2]))
+    ys = world[..., 1][np.asarray(c.weights) > 0]
+    assert np.allclose(np.sort(np.abs(ys)), [0.05] * 4 + [0.15] * 4, atol=1e-5)
+    loads = jax.jit(prior.normal_loads)(model, c)
+    assert float(jnp.sum(loads)) == pytest.approx(float(model.mass) * G.gravity, rel=1e-4)
+    # Near a belt end: the belt's corners inside the footprint become vertices too.
+    s = REST.at[geometry.X].set(G.belt_length / 2 - 0.1)
+    c = polygon_contacts(model, s)
+    xs = np.asarray(c.offsets[0, :, 0])[np.asarray(c.weights[0]) > 0] + float(s[geometry.X])
+    assert np.allclose(np.sort(xs), [0.1 - 0.0, 0.1, G.belt_length / 2, G.belt_length / 2], atol=1e-5)
+    # Beyond the belt ends: no contact.
+    c = polygon_contacts(model, REST.at[geometry.X].set(0.9))
+    assert float(jnp.sum(c.weights)) == 0
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Guards, gradients, batching.
+
+
+def _off_belt2():
+    # Belt 2 at the edge of its range, box shifted left: S2 is empty, S1 is not.
+    s = jnp.array([-0.1, G.p2_range[1], 0.0, -0.06, 0.0])
+    s1, s2 = geometry.contact_masks(s, BOX, G)
+    assert float(jnp.sum(s2)) == 0 and float(jnp.sum(s1)) > 0
+    return s
+
+
+SETUPS = {"slip": dict(), "slip-voxels": dict(contact="voxels"), "paper": dict(variant="paper")}
+
+
+@pytest.mark.parametrize("setup", list(SETUPS))
+def test_no_nan_and_finite_grads(setup):
+    # Situations: S2 empty; box beyond the belt ends (no contact at all); at rest; moving. One compiled
+    # gradient per setup, vmapped over the situations.
+    windows = jnp.stack(
+        [
+            prior.initial_window(_off_belt2()),
+            prior.initial_window(REST.at[geometry.X].set(0.9)),
+            prior.initial_window(REST),
+            _moving_window(),
+        ]
+    )
+    speeds = jnp.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.05, -0.05]])
+    fm = _linear_map()
+    masses = massdist.voxel_masses(massdist.named("C", BOX), BOX)
+    action = jnp.array([0.07, -0.07, 0.004, 0.0])
+
+    out = np.stack(
+        [
+            np.asarray(one(prior.make_prior(masses, fm, BOX, G, **SETUPS[setup]), w, b, action))
+            for w, b in zip(windows, speeds, strict=True)
+        ]
+    )
+    assert np.all(np.isfinite(out))
+    # Off the belts nothing touches the box: it keeps its (zero) velocity.
+    assert np.allclose(out[1, 2:], np.asarray(windows[1, -1, 2:]), atol=1e-6)
+    if setup == "slip-voxels":
+        return  # same solver as "slip"; spare the compile of a third gradient
+
+    def yaw(a, m, w, b):
+        return prior.predict(prior.make_prior(m, fm, BOX, G, **SETUPS[setup]), w, b, a)[geometry.YAW]
+
+    grad = jax.jit(jax.grad(yaw, argnums=(0, 1)))
+    for w, b in zip(windows, speeds, strict=True):
+        ga, gm = grad(action, masses, w, b)
+        assert np.all(np.isfinite(np.asarray(ga))) and np.all(np.isfinite(np.asarray(gm)))
+    # Moving (the last situation): the turn depends on the belt-1 command and on the masses.
+    assert float(jnp.abs(ga[0])) > 0 and float(jnp.max(jnp.abs(gm))) > 0
+
+
+@pytest.mark.parametrize("setup", ["slip", "paper"])
+def test_vmap_over_action_set_equals_loop(setup):
+    masses = massdist.voxel_masses(massdist.named("B", BOX), BOX)
+    model = prior.make_prior(masses, _linear_map(), BOX, G, **SETUPS[setup])
+    window = _moving_window()
+    speed = jnp.array([0.05, -0.05])
+    acts = planner.to_env_actions(planner.action_set(G), speed, G)
+    assert acts.shape == (95, 4)
+    got = np.asarray(batched(model, window, speed, acts))
+    loop = np.stack([np.asarray(one(model, window, speed, a)) for a in acts])
+    assert np.allclose(got, loop, atol=1e-6)
+    assert len(np.unique(np.round(got, 7), axis=0)) > 50  # the actions do differ
+
+
+def test_rollout_first_step_is_predict():
+    model = prior.make_prior(_uniform(), None, BOX, G)
+    w, b, a = _moving_window(), jnp.array([0.05, -0.05]), jnp.array([0.08, -0.08, 0.0, 0.0])
+    traj = prior.rollout(model, w, b, a, 3)
+    assert traj.shape == (3, 5)
+    assert np.allclose(np.asarray(traj[0]), np.asarray(one(model, w, b, a)), atol=1e-6)
+    assert np.allclose(np.asarray(prior.next_belt_speed(model, b, a)), [0.08, -0.08])
+
+
+def test_check_window():
+    w = np.tile(np.asarray(REST), (3, 1))
+    assert prior.check_window(w).shape == (3, 5)
+    with pytest.raises(ValueError, match="at least 3"):
+        prior.check_window(w[:2])
+    with pytest.raises(ValueError, match=r"shape \(W, 5\)"):
+        prior.check_window(w[:, :4])
+    bad = w.copy()
+    bad[1, 4] = np.nan
+    with pytest.raises(ValueError, match="row 1 yaw"):
+        prior.check_window(bad)
+    with pytest.raises(ValueError, match="belt_speed"):
+        prior.check_window(w, belt_speed=[0.0, np.inf])
+    with pytest.raises(ValueError, match="action"):
+        prior.check_window(w, action=[0.0, 0.0, 0.0])
+
+
+def test_make_prior_rejects_bad_setup():
+    with pytest.raises(ValueError, match="force map"):
+        prior.make_prior(_uniform(), None, BOX, G, variant="paper")
+    with pytest.raises(ValueError, match="variant"):
+        prior.make_prior(_uniform(), None, BOX, G, variant="nope")
+    with pytest.raises(ValueError, match="shape"):
+        prior.make_prior(jnp.ones((4, 4, 4)), None, BOX, G)
+    with pytest.raises(ValueError, match="columns"):
+        prior.make_prior(_uniform(), None, BOX, G, normal="columns")
