@@ -249,20 +249,15 @@ def window_kinematics(window, com_xy, dt: float) -> Kinematics:
     return Kinematics(rc=rc[2], v=v, a0=a0, theta=th2, omega=omega, alpha0=alpha0)
 
 
-def _unit(x, eps=1e-9):
-    """x / |x| for planar vectors (..., 2), 0 where |x| ~ 0 (no NaN, finite gradient)."""
-    n2 = jnp.sum(x * x, axis=-1, keepdims=True)
-    return x * jax.lax.rsqrt(n2 + eps * eps)
-
-
 def paper_friction(offsets, column_mass, s1, s2, v, omega, disp, mu: float, g: float):
     """Frictions of paper eqs. 11-13 over V1 and V2 (the voxel columns above S1 and S2).
 
     For each column Q (all its voxels share the planar position), the friction direction is eq. 11,
     eta_Q = -dr_Q - proj(-dr_Q, -v_Q): the part of the voxel's displacement over the step that is
     orthogonal to its current velocity, reversed (the friction along the current velocity is already in
-    the observed acceleration). eta_Q is normalised to a unit vector (eq. 11 gives a direction; 0 where
-    the displacement is along the velocity or zero). Each voxel of the column contributes
+    the observed acceleration). eta_Q is normalised to a unit vector (eq. 11 gives a direction), faded
+    to 0 where that orthogonal part is below 0.1 % of the displacement (along the velocity, or zero).
+    Each voxel of the column contributes
     eta_Q mu_k g dM_Q (eq. 13).
 
     Args:
@@ -277,7 +272,11 @@ def paper_friction(offsets, column_mass, s1, s2, v, omega, disp, mu: float, g: f
     """
     vq = v + omega * perp(offsets)
     proj = jnp.sum(disp * vq, -1, keepdims=True) / (jnp.sum(vq * vq, -1, keepdims=True) + _TINY) * vq
-    eta = _unit(-(disp - proj))
+    orth = -(disp - proj)
+    # Unit direction, faded out when the orthogonal part is below 0.1 % of the displacement: there the
+    # direction is float32 round-off (a displacement along the velocity has no eq. 11 friction).
+    scale2 = 1e-6 * jnp.sum(disp * disp, -1, keepdims=True) + 1e-18
+    eta = orth * jax.lax.rsqrt(jnp.sum(orth * orth, -1, keepdims=True) + scale2)
     df = mu * g * column_mass[..., None] * eta  # (nx, ny, 2)
     f1 = jnp.sum(s1[..., None] * df, axis=(0, 1))
     f2 = jnp.sum(s2[..., None] * df, axis=(0, 1))

@@ -16,7 +16,7 @@ from boxjax.config import DEFAULT, BoxConfig
 
 G = DEFAULT.gripper
 BOX = DEFAULT.box
-recover = jax.jit(lambda states, masses: recover(states, masses))
+recover = jax.jit(lambda states, masses: calibrate.recover_forces(states, masses, BOX, G))
 
 
 def _synthetic(seed=0, n=2000, noise=0.5):
