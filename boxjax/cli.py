@@ -3,6 +3,8 @@
     boxjax simulate --distribution D --policy naive --steps 300 [--backend native|mjx] [--plot f.png] [--json]
     boxjax rotate --distribution C --estimator oracle|learned [--seed S] [--plot f.png] [--json]
     boxjax demo [--distribution A|B|C|D|uniform] [--plot boxjax_demo.png] [--json]
+    boxjax train-estimator [--boxes 2000] [--seed S] --out DIR [--json]
+    boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE] [--json]
 
 With --json the last line printed is one JSON object (the summary); everything else goes before it.
 """
@@ -34,7 +36,7 @@ def cmd_simulate(args) -> dict:
 
     cfg = DEFAULT
     if args.steps < 1:
-        raise SystemExit("--steps must be >= 1")
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
     dist = massdist.named(args.distribution, cfg.box)
     key = jax.random.PRNGKey(args.seed)
     key_reset, key_run = jax.random.split(key)
@@ -43,7 +45,7 @@ def cmd_simulate(args) -> dict:
     state = env.reset(key_reset, dist)
     if args.policy == "naive":
         if not 0 < args.speed <= cfg.gripper.belt_speed_limit:
-            raise SystemExit(
+            raise ValueError(
                 f"--speed {args.speed} m/s is beyond the belt speed limit {cfg.gripper.belt_speed_limit} m/s"
             )
         policy = naive_policy(args.speed)
@@ -112,6 +114,26 @@ def cmd_rotate(args) -> dict:
         target = float(res.trace.s[0, 4]) + cfg.task.target_yaw_delta
         summary["plot"] = plot_episode(res.trace, args.plot, cfg.task.balance_limit, target, title)
     return summary
+
+
+def cmd_train_estimator(args) -> dict:
+    from boxjax import estimator_pipeline as P
+    from boxjax.config import DEFAULT
+
+    if args.boxes < 10:
+        raise ValueError(f"--boxes must be >= 10 (train and validation splits), got {args.boxes}")
+    report = P.train_estimator(args.seed, args.boxes, args.out, DEFAULT, progress=not args.json)
+    return {"command": "train-estimator", "boxes": args.boxes, "seed": args.seed, "out": args.out, **report}
+
+
+def cmd_estimator_eval(args) -> dict:
+    from boxjax import estimator_pipeline as P
+    from boxjax.config import DEFAULT
+
+    if args.boxes < 1:
+        raise ValueError(f"--boxes must be >= 1, got {args.boxes}")
+    res = P.evaluate_estimator(args.seed, args.boxes, args.weights, DEFAULT, progress=not args.json)
+    return {"command": "estimator-eval", **res}
 
 
 def cmd_demo(args) -> dict:
@@ -197,6 +219,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     r.set_defaults(func=cmd_rotate)
 
+    t = sub.add_parser("train-estimator", help="generate exploration data and train the estimator H")
+    t.add_argument("--boxes", type=int, default=2000)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--out", required=True, help="directory for dataset.npz, estimator.npz, report.json")
+    t.add_argument("--json", action="store_true")
+    t.set_defaults(func=cmd_train_estimator)
+
+    e = sub.add_parser("estimator-eval", help="accuracy of H on fresh random boxes")
+    e.add_argument("--boxes", type=int, default=500)
+    e.add_argument("--seed", type=int, default=1)
+    e.add_argument("--weights", help="checkpoint (default: the one shipped with boxjax)")
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(func=cmd_estimator_eval)
+
     d = sub.add_parser("demo", help="the whole pipeline on one box (what `make demo` runs)")
     d.add_argument("--distribution", choices=NAMES, default="A")
     d.add_argument("--seed", type=int, default=0)
@@ -210,7 +246,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         summary = args.func(args)
-    except (ValueError, FileNotFoundError) as e:  # bad input: say what, no traceback
+    except (ValueError, FileNotFoundError) as e:  # bad input (incl. CheckpointError): say what, no traceback
         sys.stderr.write(f"boxjax {args.command}: error: {e}\n")
         return 2
     if args.command != "demo" or args.json:

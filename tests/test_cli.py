@@ -1,0 +1,50 @@
+"""The command line: JSON summaries on the last line, clear errors with exit status 2."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from boxjax.cli import main
+
+
+def _last_json(capsys):
+    out = capsys.readouterr().out.strip().splitlines()
+    return json.loads(out[-1])
+
+
+def test_simulate_json_summary(capsys):
+    assert main(["simulate", "--distribution", "uniform", "--steps", "5", "--json"]) == 0
+    res = _last_json(capsys)
+    for k in (
+        "distribution",
+        "backend",
+        "steps",
+        "final_yaw_rad",
+        "max_balance_error_m",
+        "success",
+        "failed_reason",
+        "wall_s",
+    ):
+        assert k in res
+    assert res["steps"] == 5 and res["distribution"] == "uniform" and res["backend"] == "native"
+
+
+def test_rotate_refuses_D(capsys, tmp_path):
+    png = tmp_path / "d.png"
+    assert main(["rotate", "--distribution", "D", "--json", "--plot", str(png)]) == 0
+    res = _last_json(capsys)
+    assert res["aborted"] and not res["success"] and res["estimator"] == "oracle"
+    assert png.stat().st_size > 10_000
+
+
+def test_bad_input_exits_2(capsys, tmp_path):
+    assert main(["simulate", "--speed", "0.5"]) == 2  # beyond the belt speed limit
+    assert "belt speed limit" in capsys.readouterr().err
+    bad = tmp_path / "bad.npz"
+    bad.write_text("not a checkpoint")
+    assert main(["estimator-eval", "--boxes", "2", "--weights", str(bad)]) == 2
+    assert "not a boxjax checkpoint" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["simulate", "--distribution", "E"])
