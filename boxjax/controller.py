@@ -179,15 +179,7 @@ def run_episode(
             window.append(np.asarray(state.s))
     wall = time.perf_counter() - t_start
 
-    trace = EpisodeTrace(
-        time=np.arange(len(rows)) * cfg.gripper.control_dt,
-        s=np.stack([np.asarray(r.s) for r in rows]),
-        belt_speed=np.stack([np.asarray(r.belt_speed) for r in rows]),
-        actions=np.asarray(actions).reshape(-1, 4),
-        balance_error=np.asarray([float(r.balance_error) for r in rows]),
-        clipped=np.asarray([bool(r.clipped) for r in rows[1:]], dtype=bool),
-        wall_s=wall,
-    )
+    trace = EpisodeTrace.from_states(rows, actions, cfg.gripper.control_dt, wall)
     aborted = why is not None
     s = state.summary()
     timed = plan_ms[1:] if len(plan_ms) > 1 else plan_ms  # the first call compiles

@@ -100,6 +100,19 @@ def _figure(figsize):
     return fig
 
 
+def _plot_yaw_balance(ax_yaw, ax_bal, trace, balance_limit: float, target_yaw: float):
+    """Yaw against its target, and the balance error against its limit, over time."""
+    t = np.asarray(trace.time)
+    ax_yaw.plot(t, np.degrees(np.asarray(trace.s)[:, 4]), label="yaw")
+    ax_yaw.axhline(np.degrees(target_yaw), color="k", ls="--", lw=0.8, label="target")
+    ax_yaw.set_ylabel("yaw (deg)")
+    ax_yaw.legend(loc="best", fontsize=8)
+    ax_bal.plot(t, 100 * np.asarray(trace.balance_error), color="C3", label="|y - (P1+P2)/2|")
+    ax_bal.axhline(100 * balance_limit, color="r", ls="--", lw=0.8, label="limit")
+    ax_bal.set_ylabel("balance error (cm)")
+    ax_bal.legend(loc="best", fontsize=8)
+
+
 def plot_episode_axes(axes, trace, balance_limit: float, target_yaw: float, title: str | None = None):
     """Draw an episode on 4 axes: yaw vs target, balance error vs limit, belt speeds, belt positions.
 
@@ -111,14 +124,7 @@ def plot_episode_axes(axes, trace, balance_limit: float, target_yaw: float, titl
     s = np.asarray(trace.s)
     a = np.asarray(trace.actions)
     ax_yaw, ax_bal, ax_v, ax_p = axes
-    ax_yaw.plot(t, np.degrees(s[:, 4]), label="yaw")
-    ax_yaw.axhline(np.degrees(target_yaw), color="k", ls="--", lw=0.8, label="target")
-    ax_yaw.set_ylabel("yaw (deg)")
-    ax_yaw.legend(loc="best", fontsize=8)
-    ax_bal.plot(t, 100 * np.asarray(trace.balance_error), color="C3", label="|y - (P1+P2)/2|")
-    ax_bal.axhline(100 * balance_limit, color="r", ls="--", lw=0.8, label="limit")
-    ax_bal.set_ylabel("balance error (cm)")
-    ax_bal.legend(loc="best", fontsize=8)
+    _plot_yaw_balance(ax_yaw, ax_bal, trace, balance_limit, target_yaw)
     ta = t[1:] if len(t) > 1 else t
     for i, c in enumerate(("C0", "C1")):
         ax_v.plot(t, np.asarray(trace.belt_speed)[:, i], color=c, label=f"belt {i + 1} speed")
@@ -165,16 +171,8 @@ def plot_demo(
     )
     ax_yaw = fig.add_subplot(grid[0, 1:])
     ax_bal = fig.add_subplot(grid[1, 1:], sharex=ax_yaw)
-    t, s = np.asarray(trace.time), np.asarray(trace.s)
-    ax_yaw.plot(t, np.degrees(s[:, 4]), label="yaw")
-    ax_yaw.axhline(np.degrees(target_yaw), color="k", ls="--", lw=0.8, label="target")
-    ax_yaw.set_ylabel("yaw (deg)")
-    ax_yaw.legend(loc="best", fontsize=8)
-    ax_bal.plot(t, 100 * np.asarray(trace.balance_error), color="C3", label="balance error")
-    ax_bal.axhline(100 * balance_limit, color="r", ls="--", lw=0.8, label="limit")
-    ax_bal.set_ylabel("balance error (cm)")
+    _plot_yaw_balance(ax_yaw, ax_bal, trace, balance_limit, target_yaw)
     ax_bal.set_xlabel("time (s)")
-    ax_bal.legend(loc="best", fontsize=8)
     if title:
         fig.suptitle(title, fontsize=11)
     return save_figure(fig, path)

@@ -27,6 +27,21 @@ class EpisodeTrace(NamedTuple):
     clipped: np.ndarray
     wall_s: float
 
+    @classmethod
+    def from_states(
+        cls, states: list[State], actions: list, control_dt: float, wall_s: float
+    ) -> EpisodeTrace:
+        """Build a trace from the T+1 states visited and the T actions sent."""
+        return cls(
+            time=np.arange(len(states)) * control_dt,
+            s=np.stack([np.asarray(r.s) for r in states]),
+            belt_speed=np.stack([np.asarray(r.belt_speed) for r in states]),
+            actions=np.asarray(actions, dtype=np.float64).reshape(-1, 4),
+            balance_error=np.asarray([float(r.balance_error) for r in states]),
+            clipped=np.asarray([bool(r.clipped) for r in states[1:]], dtype=bool),
+            wall_s=wall_s,
+        )
+
 
 Policy = Callable[[State, jax.Array], np.ndarray]  # (state, key) -> action (4,)
 
@@ -45,17 +60,7 @@ def run_episode(env, state: State, policy: Policy, key, max_steps: int) -> tuple
         state = step(state, a)
         actions.append(a)
         rows.append(state)
-    wall = time.perf_counter() - t0
-    dt = env.cfg.gripper.control_dt
-    trace = EpisodeTrace(
-        time=np.arange(len(rows)) * dt,
-        s=np.stack([np.asarray(r.s) for r in rows]),
-        belt_speed=np.stack([np.asarray(r.belt_speed) for r in rows]),
-        actions=np.asarray(actions).reshape(-1, 4),
-        balance_error=np.asarray([float(r.balance_error) for r in rows]),
-        clipped=np.asarray([bool(r.clipped) for r in rows[1:]], dtype=bool),
-        wall_s=wall,
-    )
+    trace = EpisodeTrace.from_states(rows, actions, env.cfg.gripper.control_dt, time.perf_counter() - t0)
     return state, trace
 
 
