@@ -31,8 +31,6 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
-import zipfile
 from typing import NamedTuple
 
 import jax
@@ -41,6 +39,7 @@ import numpy as np
 
 from boxjax import geometry
 from boxjax.config import BoxConfig, Config, GripperConfig
+from boxjax.fileio import atomic_path, read_npz
 from boxjax.massdist import mass_properties_from_masses
 
 FORMAT_VERSION = 1
@@ -364,18 +363,8 @@ def save(path, fm: ForceMap, config: Config, meta: dict | None = None) -> None:
         meta_json=np.asarray(json.dumps(meta or {}, sort_keys=True)),
         **arrays,
     )
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".calib-", suffix=".npz.tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, **payload)
 
 
 def load(path, expected_config: Config) -> tuple[ForceMap, dict]:
@@ -387,13 +376,7 @@ def load(path, expected_config: Config) -> tuple[ForceMap, dict]:
         `expected_config` in any of CALIBRATION_FIELDS (the message names each field, stored vs expected).
     """
     path = os.fspath(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except FileNotFoundError as e:
-        raise CalibrationError(f"calibration file {path!r} does not exist") from e
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise CalibrationError(f"calibration file {path!r} is corrupt or not an .npz file: {e}") from e
+    data = read_npz(path, CalibrationError, "calibration")
     required = ("format_version", "config_json", "meta_json", *ForceMap._fields)
     missing = [k for k in required if k not in data]
     if missing:

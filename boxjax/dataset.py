@@ -37,7 +37,6 @@ import dataclasses
 import json
 import os
 import time
-import zipfile
 from functools import partial
 
 import jax
@@ -47,7 +46,7 @@ from tqdm.auto import tqdm
 
 from boxjax import explore, geometry, massdist
 from boxjax.config import DEFAULT, Config
-from boxjax.fileio import atomic_path
+from boxjax.fileio import atomic_path, read_npz
 
 FORMAT = "boxjax-exploration-dataset"
 FORMAT_VERSION = 1
@@ -95,7 +94,11 @@ def _rollout(cfg: Config, dists, actions, backend: str, progress) -> dict:
 
 
 def simulate(
-    cfg: Config, dists: massdist.MassDistribution, *, backend: str = "native", progress: bool = True,
+    cfg: Config,
+    dists: massdist.MassDistribution,
+    *,
+    backend: str = "native",
+    progress: bool = True,
     chunk: int = 500,
 ) -> dict:
     """Run the exploration phase on given boxes (batched MassDistribution, leading axis B).
@@ -110,8 +113,14 @@ def simulate(
     actions = explore.exploration_actions(cfg)
     applied = jnp.asarray(explore.applied_actions(cfg))
     parts = []
-    bar = tqdm(total=n * explore.N_STEPS, desc=f"explore ({backend})", unit="transition", unit_scale=True,
-               disable=not progress, leave=False)
+    bar = tqdm(
+        total=n * explore.N_STEPS,
+        desc=f"explore ({backend})",
+        unit="transition",
+        unit_scale=True,
+        disable=not progress,
+        leave=False,
+    )
     for lo in range(0, n, chunk):
         hi = min(n, lo + chunk)
         done = [0]
@@ -124,11 +133,14 @@ def simulate(
         traj, final = _trajectories(out["s"], out["belt_speed"], applied)
         s = out["s"]
         bal = np.abs(s[..., geometry.Y] - 0.5 * (s[..., geometry.P1] + s[..., geometry.P2]))
-        parts.append(dict(
-            traj=np.asarray(traj), final=np.asarray(final),
-            max_balance_error=bal.max(axis=1).astype(np.float32),
-            clipped=np.asarray(out["clipped"]).any(axis=1),
-        ))
+        parts.append(
+            dict(
+                traj=np.asarray(traj),
+                final=np.asarray(final),
+                max_balance_error=bal.max(axis=1).astype(np.float32),
+                clipped=np.asarray(out["clipped"]).any(axis=1),
+            )
+        )
     bar.close()
     data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     hazardous = jax.jit(jax.vmap(lambda d: massdist.is_hazardous(d, cfg.box)))(
@@ -170,8 +182,13 @@ def generate(
 
 def make_meta(cfg: Config, seed, p_hazardous: float, backend: str, **extra) -> dict:
     """The metadata `save` requires: config, seed, p_hazardous, backend (+ any JSON-serialisable extras)."""
-    return {"config": cfg.to_dict(), "seed": seed, "p_hazardous": float(p_hazardous), "backend": backend,
-            **extra}
+    return {
+        "config": cfg.to_dict(),
+        "seed": seed,
+        "p_hazardous": float(p_hazardous),
+        "backend": backend,
+        **extra,
+    }
 
 
 def summary(data: dict) -> dict:
@@ -184,7 +201,8 @@ def summary(data: dict) -> dict:
         "max_balance_error_cm_median": float(100 * np.median(bal)),
         "max_balance_error_cm_p95": float(100 * np.quantile(bal, 0.95)),
         "max_balance_error_cm_safe_p95": float(100 * np.quantile(bal[~np.asarray(data["hazardous"])], 0.95))
-        if np.any(~np.asarray(data["hazardous"])) else float("nan"),
+        if np.any(~np.asarray(data["hazardous"]))
+        else float("nan"),
         "any_clipped": bool(np.any(data["clipped"])),
     }
 
@@ -204,14 +222,17 @@ def save(path: str | os.PathLike, data: dict, meta: dict) -> str:
     if absent:
         raise ValueError(f"dataset lacks arrays {absent}")
     cfg = _config_from_dict(meta["config"])
-    full = dict(meta, format=FORMAT, version=FORMAT_VERSION,
-                exploration_actions=explore.exploration_actions(cfg).tolist())
+    full = dict(
+        meta,
+        format=FORMAT,
+        version=FORMAT_VERSION,
+        exploration_actions=explore.exploration_actions(cfg).tolist(),
+    )
     arrays = {k: np.asarray(data[k]) for k in ARRAYS}
     arrays[_META_KEY] = np.array([json.dumps(_canonical(full), sort_keys=True)])
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
-        os.chmod(tmp, 0o644)  # mkstemp makes it owner-only
     return os.fspath(path)
 
 
@@ -221,8 +242,11 @@ def _config_from_dict(d: dict) -> Config:
     def tup(sub):
         return {k: tuple(v) if isinstance(v, list) else v for k, v in sub.items()}
 
-    return Config(box=BoxConfig(**tup(d["box"])), gripper=GripperConfig(**tup(d["gripper"])),
-                  task=TaskConfig(**tup(d["task"])))
+    return Config(
+        box=BoxConfig(**tup(d["box"])),
+        gripper=GripperConfig(**tup(d["gripper"])),
+        task=TaskConfig(**tup(d["task"])),
+    )
 
 
 def load(path: str | os.PathLike, expected_cfg: Config | None = DEFAULT) -> tuple[dict, dict]:
@@ -236,15 +260,7 @@ def load(path: str | os.PathLike, expected_cfg: Config | None = DEFAULT) -> tupl
       box or gripper config, other exploration sequence, missing arrays or inconsistent shapes, NaN.
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DatasetError(f"{path}: no such dataset file")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise DatasetError(f"{path}: not a boxjax dataset, or corrupt / truncated ({e})") from e
-    except Exception as e:  # zlib.error and friends from a damaged member
-        raise DatasetError(f"{path}: corrupt dataset ({type(e).__name__}: {e})") from e
+    arrays = read_npz(path, DatasetError, "dataset")
     if _META_KEY not in arrays:
         raise DatasetError(f"{path}: not a boxjax dataset (no {_META_KEY!r} entry)")
     try:
@@ -254,8 +270,10 @@ def load(path: str | os.PathLike, expected_cfg: Config | None = DEFAULT) -> tupl
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise DatasetError(f"{path}: not a boxjax exploration dataset")
     if meta.get("version") != FORMAT_VERSION:
-        raise DatasetError(f"{path}: dataset format version {meta.get('version')!r}; this boxjax reads "
-                           f"version {FORMAT_VERSION}")
+        raise DatasetError(
+            f"{path}: dataset format version {meta.get('version')!r}; this boxjax reads "
+            f"version {FORMAT_VERSION}"
+        )
     try:
         cfg = _config_from_dict(meta["config"])
     except (KeyError, TypeError, ValueError) as e:
@@ -267,21 +285,30 @@ def load(path: str | os.PathLike, expected_cfg: Config | None = DEFAULT) -> tupl
             if got != want:
                 diff = sorted(k for k in want if got.get(k) != want[k])
                 got_d, want_d = {k: got.get(k) for k in diff}, {k: want[k] for k in diff}
-                raise DatasetError(f"{path}: generated with another {part} config (differs in {diff}: "
-                                   f"{got_d} vs expected {want_d})")
+                raise DatasetError(
+                    f"{path}: generated with another {part} config (differs in {diff}: "
+                    f"{got_d} vs expected {want_d})"
+                )
         want_actions = explore.exploration_actions(expected_cfg)
         got_actions = np.asarray(meta.get("exploration_actions", []), np.float32)
         if got_actions.shape != want_actions.shape or not np.allclose(got_actions, want_actions, atol=1e-7):
-            raise DatasetError(f"{path}: generated with a different exploration sequence than "
-                               "boxjax.explore's; regenerate it")
+            raise DatasetError(
+                f"{path}: generated with a different exploration sequence than "
+                "boxjax.explore's; regenerate it"
+            )
     missing = [k for k in ARRAYS if k not in arrays]
     if missing:
         raise DatasetError(f"{path}: missing arrays {missing}")
     b = arrays["traj"].shape[0]
     grid = tuple(cfg.box.grid)
     shapes = {
-        "traj": (b, explore.N_STEPS, explore.N_TRAJ_COLUMNS), "final": (b, 5), "occupancy": (b, *grid),
-        "total_mass": (b,), "hazardous": (b,), "max_balance_error": (b,), "clipped": (b,),
+        "traj": (b, explore.N_STEPS, explore.N_TRAJ_COLUMNS),
+        "final": (b, 5),
+        "occupancy": (b, *grid),
+        "total_mass": (b,),
+        "hazardous": (b,),
+        "max_balance_error": (b,),
+        "clipped": (b,),
     }
     for k, shape in shapes.items():
         if arrays[k].shape != shape:
@@ -303,8 +330,11 @@ def benchmark_backends(cfg: Config = DEFAULT, n_boxes: int = 64, seed: int = 0) 
             t0 = time.perf_counter()
             outs[backend] = simulate(cfg, dists, backend=backend, progress=False, chunk=n_boxes)
             times.append(time.perf_counter() - t0)
-        res[backend] = {"first_s": times[0], "second_s": times[1],
-                        "transitions_per_s": n_boxes * explore.N_STEPS / times[1]}
+        res[backend] = {
+            "first_s": times[0],
+            "second_s": times[1],
+            "transitions_per_s": n_boxes * explore.N_STEPS / times[1],
+        }
     res["max_abs_traj_diff"] = float(np.max(np.abs(outs["native"]["traj"] - outs["mjx"]["traj"])))
     res["boxes"] = n_boxes
     return res

@@ -57,9 +57,7 @@ import functools
 import json
 import math
 import os
-import tempfile
 import time
-import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -73,6 +71,7 @@ from tqdm.auto import tqdm
 from boxjax import __version__ as boxjax_version
 from boxjax import massdist, mlp
 from boxjax.config import BoxConfig, ConfigError
+from boxjax.fileio import atomic_path, read_npz
 from boxjax.geometry import P1, P2, YAW, X, Y, wrap_angle
 from boxjax.massdist import MassDistribution, iou
 
@@ -246,15 +245,15 @@ def features(traj: jax.Array, final: jax.Array) -> jax.Array:
       belt speed lag (2), pose after the step minus the start pose (x, y, yaw) (3), a (4)] for t = 0..T-1.
     """
     s = traj[:, :N_STATE]
-    a = traj[:, N_STATE:N_STATE + N_ACTION]
-    w = traj[:, N_STATE + N_ACTION:]
+    a = traj[:, N_STATE : N_STATE + N_ACTION]
+    w = traj[:, N_STATE + N_ACTION :]
     s_next = jnp.concatenate([s[1:], final[None, :]], axis=0)
     ds = s_next - s
     ds = ds.at[:, YAW].set(wrap_angle(ds[:, YAW]))
     c, si = jnp.cos(s[:, YAW]), jnp.sin(s[:, YAW])
     dx_box = c * ds[:, X] + si * ds[:, Y]
     dy_box = -si * ds[:, X] + c * ds[:, Y]
-    belts_rel = s[:, (P1, P2)] - s[:, Y:Y + 1]
+    belts_rel = s[:, (P1, P2)] - s[:, Y : Y + 1]
     # Differences first, then sums: P ~ 0.1 m, the lags ~ 1e-4 m (float32 keeps ~1e-8 m either way).
     carriage_lag = jnp.cumsum(ds[:, (P1, P2)] - a[:, 2:4], axis=0)
     belt_lag = a[:, :2] - w
@@ -603,8 +602,10 @@ def train(
             best_loss = np.where(improved, val_loss, best_loss)
             best_epoch = np.where(improved, epoch, best_epoch)
         bar.set_postfix(
-            train=f"{history['train_loss'][-1]:.4f}", val=f"{history['val_loss'][-1]:.4f}",
-            iou=f"{history['val_iou'][-1]:.3f}", best=f"{np.mean(best_loss):.4f}@{int(best_epoch.max())}",
+            train=f"{history['train_loss'][-1]:.4f}",
+            val=f"{history['val_loss'][-1]:.4f}",
+            iou=f"{history['val_iou'][-1]:.3f}",
+            best=f"{np.mean(best_loss):.4f}@{int(best_epoch.max())}",
             refresh=False,
         )
         if epoch - int(best_epoch.max()) >= cfg.patience:
@@ -614,10 +615,14 @@ def train(
 
     best_epoch_all = int(best_epoch.max())
     history.update(
-        best_epoch=best_epoch_all, best_val_loss=float(np.mean(best_loss)),
-        member_best_epochs=[int(e) for e in best_epoch], epochs_run=len(history["val_loss"]),
-        stopped_early=stopped_early, seconds=time.perf_counter() - start,
-        train_index=train_index, val_index=val_index,
+        best_epoch=best_epoch_all,
+        best_val_loss=float(np.mean(best_loss)),
+        member_best_epochs=[int(e) for e in best_epoch],
+        epochs_run=len(history["val_loss"]),
+        stopped_early=stopped_early,
+        seconds=time.perf_counter() - start,
+        train_index=train_index,
+        val_index=val_index,
     )
     best_loss = float(np.mean(best_loss))
     best_epoch = best_epoch_all
@@ -637,7 +642,11 @@ def train(
         **(dict(provenance) if provenance else {}),
     }
     model = EstimatorParams(
-        net=best_net, norm=norm, cfg=cfg, box=box, n_steps=int(traj.shape[1]),
+        net=best_net,
+        norm=norm,
+        cfg=cfg,
+        box=box,
+        n_steps=int(traj.shape[1]),
         provenance_json=json.dumps(prov, sort_keys=True),
     )
     return model, history
@@ -813,7 +822,7 @@ def _predictions(model: EstimatorParams, dataset, chunk: int):
     """(prob (B, nx, ny, nz), pred_mass (B,), occ, mass) as numpy, predicting in chunks of boxes."""
     traj, final, occ, mass = _dataset_arrays(dataset, model.box, model.n_steps)
     parts = [
-        jax.device_get(predict_batch(model, traj[i:i + chunk], final[i:i + chunk]))
+        jax.device_get(predict_batch(model, traj[i : i + chunk], final[i : i + chunk]))
         for i in range(0, traj.shape[0], chunk)
     ]
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), occ, mass
@@ -821,8 +830,9 @@ def _predictions(model: EstimatorParams, dataset, chunk: int):
 
 def _per_box_metrics(model: EstimatorParams, predictions, occ_threshold: float, hazard_threshold: float):
     prob, pred_mass, occ, mass = predictions
-    out = _thresholded_metrics(model.box, prob, pred_mass, occ, mass, jnp.float32(occ_threshold),
-                               jnp.float32(hazard_threshold))
+    out = _thresholded_metrics(
+        model.box, prob, pred_mass, occ, mass, jnp.float32(occ_threshold), jnp.float32(hazard_threshold)
+    )
     return {k: np.asarray(v) for k, v in out.items()}
 
 
@@ -933,10 +943,14 @@ def _expected_shapes(cfg: EstimatorConfig, n_features: int, n_voxels: int) -> di
         for i, layer in enumerate(layers)
         for name, arr in layer.items()
     }
-    shapes.update({
-        "norm.feat_mean": (n_features,), "norm.feat_std": (n_features,),
-        "norm.mass_mean": (), "norm.mass_std": (),
-    })
+    shapes.update(
+        {
+            "norm.feat_mean": (n_features,),
+            "norm.feat_std": (n_features,),
+            "norm.mass_mean": (),
+            "norm.mass_std": (),
+        }
+    )
     return shapes
 
 
@@ -967,20 +981,9 @@ def save(path: str | os.PathLike, model: EstimatorParams) -> None:
     if got != expected:
         raise ValueError("model arrays do not match its own config; refusing to save an unloadable file")
     arrays[_META_KEY] = np.array([json.dumps(meta, sort_keys=True)])
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes it owner-only
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) -> EstimatorParams:
@@ -1001,13 +1004,7 @@ def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) 
         magic = f.read(4)
     if magic != b"PK\x03\x04":  # every .npz is a zip archive
         raise CheckpointError(f"{path}: not a boxjax checkpoint (not an .npz / zip file)")
-    try:
-        with np.load(path, allow_pickle=False) as npz:  # a zip always loads as an NpzFile
-            arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise CheckpointError(f"{path}: corrupt or truncated checkpoint ({e})") from e
-    except Exception as e:  # zlib.error, NotImplementedError (zip features) ... from a damaged member
-        raise CheckpointError(f"{path}: corrupt checkpoint ({type(e).__name__}: {e})") from e
+    arrays = read_npz(path, CheckpointError, "checkpoint")
 
     if _META_KEY not in arrays:
         raise CheckpointError(f"{path}: not a boxjax checkpoint (no {_META_KEY!r} metadata array)")
@@ -1077,7 +1074,12 @@ def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) 
     net = {part: layers(part) for part in ("trunk", "occ", "mass")}
     norm = Normaliser(*(jnp.asarray(arrays[f"norm.{f}"], jnp.float32) for f in Normaliser._fields))
     return EstimatorParams(
-        net=net, norm=norm, cfg=cfg, box=box, n_steps=n_steps,
+        net=net,
+        norm=norm,
+        cfg=cfg,
+        box=box,
+        n_steps=n_steps,
         provenance_json=json.dumps(provenance, sort_keys=True),
-        occupancy_threshold=occupancy_threshold, hazard_threshold=hazard_threshold,
+        occupancy_threshold=occupancy_threshold,
+        hazard_threshold=hazard_threshold,
     )

@@ -5,6 +5,9 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import zipfile
+
+import numpy as np
 
 
 @contextlib.contextmanager
@@ -22,6 +25,11 @@ def atomic_path(path, suffix: str = ""):
     os.close(fd)
     try:
         yield tmp
+        with open(tmp, "rb+") as f:  # on disk before it replaces the old file
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes files owner-only; give the usual permissions
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -33,3 +41,21 @@ def save_figure(fig, path, dpi: int = 110) -> str:
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=dpi)
     return os.fspath(path)
+
+
+def read_npz(path, error: type[Exception], what: str) -> dict[str, np.ndarray]:
+    """All arrays of an .npz file (no pickle), or `error` with a message naming the problem.
+
+    Args:
+      error: the exception class to raise (e.g. CheckpointError); `what` names the file kind in messages.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise error(f"{path}: no such {what} file (it does not exist)")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise error(f"{path}: not a valid {what}: corrupt, truncated or not an .npz file ({e})") from e
+    except Exception as e:  # zlib.error, NotImplementedError (zip features) ... from a damaged member
+        raise error(f"{path}: corrupt {what} ({type(e).__name__}: {e})") from e
