@@ -93,6 +93,12 @@ def learned_estimator(cfg: Config, weights: str | None = None):
 
 
 @lru_cache(maxsize=8)
+def _env(cfg: Config, backend: str):
+    """One env per (config, backend), so its jitted pieces compile once, not once per episode."""
+    return make_env(cfg, backend)
+
+
+@lru_cache(maxsize=8)
 def _planner(cfg: Config, ctrl: ControllerConfig):
     return planner.make_planner(
         cfg, n_samples=ctrl.n_samples, rule=ctrl.rule, velocity=ctrl.velocity, horizon=ctrl.horizon
@@ -125,7 +131,7 @@ def run_episode(
     key_reset, key_plan = jax.random.split(key)
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
-    env = make_env(cfg, backend)
+    env = _env(cfg, backend)
     step = env.step_checked if hasattr(env, "step_checked") else env.step
     state = env.reset(key_reset, truth)
     rows, actions = [state], []
