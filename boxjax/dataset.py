@@ -46,13 +46,12 @@ from tqdm.auto import tqdm
 
 from boxjax import explore, geometry, massdist
 from boxjax.config import DEFAULT, Config
-from boxjax.fileio import atomic_path, read_npz
+from boxjax.fileio import read_npz_with_meta, write_npz_with_meta
 
 FORMAT = "boxjax-exploration-dataset"
 FORMAT_VERSION = 1
 P_HAZARDOUS = 0.25
 DEFAULT_BOXES = 2000
-_META_KEY = "__meta__"
 ARRAYS = ("traj", "final", "occupancy", "total_mass", "hazardous", "max_balance_error", "clipped")
 REQUIRED_META = ("config", "seed", "p_hazardous", "backend")
 
@@ -222,18 +221,9 @@ def save(path: str | os.PathLike, data: dict, meta: dict) -> str:
     if absent:
         raise ValueError(f"dataset lacks arrays {absent}")
     cfg = _config_from_dict(meta["config"])
-    full = dict(
-        meta,
-        format=FORMAT,
-        version=FORMAT_VERSION,
-        exploration_actions=explore.exploration_actions(cfg).tolist(),
-    )
+    full = dict(meta, exploration_actions=explore.exploration_actions(cfg).tolist())
     arrays = {k: np.asarray(data[k]) for k in ARRAYS}
-    arrays[_META_KEY] = np.array([json.dumps(_canonical(full), sort_keys=True)])
-    with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
-    return os.fspath(path)
+    return write_npz_with_meta(path, arrays, _canonical(full), FORMAT, FORMAT_VERSION)
 
 
 def _config_from_dict(d: dict) -> Config:
@@ -260,20 +250,7 @@ def load(path: str | os.PathLike, expected_cfg: Config | None = DEFAULT) -> tupl
       box or gripper config, other exploration sequence, missing arrays or inconsistent shapes, NaN.
     """
     path = os.fspath(path)
-    arrays = read_npz(path, DatasetError, "dataset")
-    if _META_KEY not in arrays:
-        raise DatasetError(f"{path}: not a boxjax dataset (no {_META_KEY!r} entry)")
-    try:
-        meta = json.loads(str(arrays.pop(_META_KEY).reshape(-1)[0]))
-    except (ValueError, IndexError) as e:
-        raise DatasetError(f"{path}: corrupt dataset metadata ({e})") from e
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise DatasetError(f"{path}: not a boxjax exploration dataset")
-    if meta.get("version") != FORMAT_VERSION:
-        raise DatasetError(
-            f"{path}: dataset format version {meta.get('version')!r}; this boxjax reads "
-            f"version {FORMAT_VERSION}"
-        )
+    arrays, meta = read_npz_with_meta(path, DatasetError, "dataset", FORMAT, FORMAT_VERSION)
     try:
         cfg = _config_from_dict(meta["config"])
     except (KeyError, TypeError, ValueError) as e:

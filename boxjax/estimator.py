@@ -71,7 +71,7 @@ from tqdm.auto import tqdm
 from boxjax import __version__ as boxjax_version
 from boxjax import massdist, mlp
 from boxjax.config import BoxConfig, ConfigError
-from boxjax.fileio import atomic_path, read_npz
+from boxjax.fileio import read_npz_with_meta, write_npz_with_meta
 from boxjax.geometry import P1, P2, YAW, X, Y, wrap_angle
 from boxjax.massdist import MassDistribution, iou
 
@@ -917,7 +917,6 @@ def calibrate(
 
 FORMAT = "boxjax-estimator"
 FORMAT_VERSION = 2  # 2: 11-column trajectories (measured belt speeds), 20 features per step
-_META_KEY = "__meta__"
 
 
 class CheckpointError(ValueError):
@@ -965,8 +964,6 @@ def save(path: str | os.PathLike, model: EstimatorParams) -> None:
     """
     path = os.fspath(path)
     meta = {
-        "format": FORMAT,
-        "version": FORMAT_VERSION,
         "estimator_config": model.cfg.to_dict(),
         "box": dataclasses.asdict(model.box),
         "n_steps": model.n_steps,
@@ -980,10 +977,7 @@ def save(path: str | os.PathLike, model: EstimatorParams) -> None:
     got = {k: v.shape for k, v in arrays.items()}
     if got != expected:
         raise ValueError("model arrays do not match its own config; refusing to save an unloadable file")
-    arrays[_META_KEY] = np.array([json.dumps(meta, sort_keys=True)])
-    with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
+    write_npz_with_meta(path, arrays, meta, FORMAT, FORMAT_VERSION)
 
 
 def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) -> EstimatorParams:
@@ -1004,21 +998,7 @@ def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) 
         magic = f.read(4)
     if magic != b"PK\x03\x04":  # every .npz is a zip archive
         raise CheckpointError(f"{path}: not a boxjax checkpoint (not an .npz / zip file)")
-    arrays = read_npz(path, CheckpointError, "checkpoint")
-
-    if _META_KEY not in arrays:
-        raise CheckpointError(f"{path}: not a boxjax checkpoint (no {_META_KEY!r} metadata array)")
-    try:
-        meta = json.loads(str(arrays.pop(_META_KEY).reshape(-1)[0]))
-    except (ValueError, IndexError) as e:
-        raise CheckpointError(f"{path}: corrupt checkpoint metadata ({e})") from e
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a boxjax checkpoint (format is not {FORMAT!r})")
-    if meta.get("version") != FORMAT_VERSION:
-        raise CheckpointError(
-            f"{path}: checkpoint format version {meta.get('version')!r}; this boxjax reads version "
-            f"{FORMAT_VERSION}"
-        )
+    arrays, meta = read_npz_with_meta(path, CheckpointError, "checkpoint", FORMAT, FORMAT_VERSION)
     try:
         cfg = EstimatorConfig.from_dict(meta["estimator_config"])
         b = meta["box"]

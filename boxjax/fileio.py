@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 import zipfile
@@ -59,3 +60,36 @@ def read_npz(path, error: type[Exception], what: str) -> dict[str, np.ndarray]:
         raise error(f"{path}: not a valid {what}: corrupt, truncated or not an .npz file ({e})") from e
     except Exception as e:  # zlib.error, NotImplementedError (zip features) ... from a damaged member
         raise error(f"{path}: corrupt {what} ({type(e).__name__}: {e})") from e
+
+
+META_KEY = "__meta__"  # the JSON metadata entry of a boxjax .npz file
+
+
+def write_npz_with_meta(path, arrays: dict, meta: dict, fmt: str, version: int) -> str:
+    """Write `arrays` and a JSON `meta` (stamped with `fmt` and `version`) as one compressed .npz,
+    atomically; no pickle is needed to read it back (`read_npz_with_meta`)."""
+    payload = dict(arrays)
+    payload[META_KEY] = np.array([json.dumps({**meta, "format": fmt, "version": version}, sort_keys=True)])
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **payload)
+    return os.fspath(path)
+
+
+def read_npz_with_meta(path, error: type[Exception], what: str, fmt: str, version: int):
+    """(arrays, meta) of a file written by `write_npz_with_meta`, or `error` naming the problem: missing,
+    corrupt or truncated file, no or unreadable metadata, another format, another format version."""
+    arrays = read_npz(path, error, what)
+    if META_KEY not in arrays:
+        raise error(f"{path}: not a boxjax {what} (no {META_KEY!r} metadata entry)")
+    try:
+        meta = json.loads(str(arrays.pop(META_KEY).reshape(-1)[0]))
+    except (ValueError, IndexError) as e:
+        raise error(f"{path}: corrupt {what} metadata ({e})") from e
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        raise error(f"{path}: not a boxjax {what} (format is not {fmt!r})")
+    if meta.get("version") != version:
+        raise error(
+            f"{path}: {what} format version {meta.get('version')!r}; this boxjax reads version {version}"
+        )
+    return arrays, meta

@@ -3,12 +3,12 @@ checked on load."""
 
 from __future__ import annotations
 
-import json
 import os
 
 import jax
 import numpy as np
 import pytest
+from npz_util import rewrite
 
 from boxjax import dataset, explore, massdist
 from boxjax.config import DEFAULT, BoxConfig
@@ -34,11 +34,13 @@ def test_generate_shapes_and_content(data):
     assert np.all((data["total_mass"] >= lo) & (data["total_mass"] <= hi))
     # Every box starts at rest at the nominal pose; the applied actions are the exploration's.
     np.testing.assert_allclose(data["traj"][:, 0, :5], np.tile([-0.1, 0.1, 0, 0, 0], (N, 1)), atol=1e-6)
-    np.testing.assert_allclose(data["traj"][:, :, 5:9], np.broadcast_to(explore.applied_actions(CFG),
-                                                                         (N, 45, 4)), atol=1e-6)
+    np.testing.assert_allclose(
+        data["traj"][:, :, 5:9], np.broadcast_to(explore.applied_actions(CFG), (N, 45, 4)), atol=1e-6
+    )
     # Labels agree with the grids; the balance error is that of the stored states.
     labels = jax.vmap(lambda o, m: massdist.is_hazardous(massdist.MassDistribution(o, m), CFG.box))(
-        data["occupancy"], data["total_mass"])
+        data["occupancy"], data["total_mass"]
+    )
     np.testing.assert_array_equal(np.asarray(labels), data["hazardous"])
     s = np.concatenate([data["traj"][:, :, :5], data["final"][:, None]], axis=1)
     bal = np.abs(s[..., 3] - 0.5 * (s[..., 0] + s[..., 1])).max(axis=1)
@@ -77,14 +79,6 @@ def test_save_load_round_trip(data, tmp_path):
         dataset.save(path, data, {"seed": 1})
 
 
-def _rewrite(src, dst, mutate):
-    with np.load(src, allow_pickle=False) as npz:
-        arrays = {k: npz[k] for k in npz.files}
-    meta = json.loads(str(arrays.pop("__meta__")[0]))
-    mutate(arrays, meta)
-    np.savez_compressed(dst, __meta__=np.array([json.dumps(meta)]), **arrays)
-
-
 def test_load_rejects_bad_files(data, tmp_path):
     good = tmp_path / "good.npz"
     dataset.save(good, data, dataset.make_meta(CFG, 3, 0.5, "native"))
@@ -98,19 +92,19 @@ def test_load_rejects_bad_files(data, tmp_path):
     with pytest.raises(dataset.DatasetError, match="box config.*grid"):
         dataset.load(good, other)
     shape = tmp_path / "shape.npz"
-    _rewrite(good, shape, lambda a, m: a.update(traj=a["traj"][:, :44]))
+    rewrite(good, shape, lambda a, m: a.update(traj=a["traj"][:, :44]))
     with pytest.raises(dataset.DatasetError, match="traj.*shape"):
         dataset.load(shape)
     seq = tmp_path / "seq.npz"
-    _rewrite(good, seq, lambda a, m: m["exploration_actions"][0].__setitem__(0, 0.2))
+    rewrite(good, seq, lambda a, m: m["exploration_actions"][0].__setitem__(0, 0.2))
     with pytest.raises(dataset.DatasetError, match="exploration sequence"):
         dataset.load(seq)
     nan = tmp_path / "nan.npz"
-    _rewrite(good, nan, lambda a, m: a["final"].__setitem__((0, 0), np.nan))
+    rewrite(good, nan, lambda a, m: a["final"].__setitem__((0, 0), np.nan))
     with pytest.raises(dataset.DatasetError, match="NaN"):
         dataset.load(nan)
     ver = tmp_path / "ver.npz"
-    _rewrite(good, ver, lambda a, m: m.update(version=99))
+    rewrite(good, ver, lambda a, m: m.update(version=99))
     with pytest.raises(dataset.DatasetError, match="version 99"):
         dataset.load(ver)
 
@@ -127,8 +121,12 @@ def test_mjx_backend_gives_the_same_dataset():
     in float64): even the uniform box drifts apart by ~1 degree and a few mm over the phase. So: identical
     layout and labels, the same first steps, and the same trajectory within a loose band
     (slow: MJX compiles for ~1 minute on a 2-core CPU)."""
-    dists = massdist.MassDistribution(*(np.stack(x) for x in zip(
-        massdist.named("uniform", CFG.box), massdist.named("C", CFG.box), strict=True)))
+    dists = massdist.MassDistribution(
+        *(
+            np.stack(x)
+            for x in zip(massdist.named("uniform", CFG.box), massdist.named("C", CFG.box), strict=True)
+        )
+    )
     nat = dataset.simulate(CFG, dists, backend="native", progress=False)
     mjx = dataset.simulate(CFG, dists, backend="mjx", progress=False)
     for k in ("occupancy", "total_mass", "hazardous", "clipped"):

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from npz_util import rewrite
 
 from boxjax import estimator as E
 from boxjax.config import BoxConfig, ConfigError
@@ -30,8 +31,12 @@ def synthetic(seed: int, n: int, box: BoxConfig = BOX, learnable: bool = True) -
     bits[bits.sum(1) == 0, 0] = 1
     occ = np.zeros((n, nx, ny, nz), np.float32)
     hx, hy = nx // 2, ny // 2
-    quadrants = [(slice(0, hx), slice(0, hy)), (slice(0, hx), slice(hy, None)),
-                 (slice(hx, None), slice(0, hy)), (slice(hx, None), slice(hy, None))]
+    quadrants = [
+        (slice(0, hx), slice(0, hy)),
+        (slice(0, hx), slice(hy, None)),
+        (slice(hx, None), slice(0, hy)),
+        (slice(hx, None), slice(hy, None)),
+    ]
     for q, (sx, sy) in enumerate(quadrants):
         occ[:, sx, sy, :] = bits[:, q, None, None, None]
     mass = rng.uniform(1, 10, n).astype(np.float32)
@@ -263,14 +268,6 @@ def test_checkpoint_round_trip(trained, tmp_path):
     assert os.listdir(tmp_path) == ["h.npz"]
 
 
-def _rewrite(src, dst, mutate):
-    with np.load(src, allow_pickle=False) as npz:
-        arrays = {k: npz[k] for k in npz.files}
-    meta = json.loads(str(arrays.pop("__meta__")[0]))
-    mutate(arrays, meta)
-    np.savez_compressed(dst, __meta__=np.array([json.dumps(meta)]), **arrays)
-
-
 @pytest.fixture(scope="module")
 def checkpoint(trained, tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "h.npz"
@@ -305,7 +302,7 @@ def test_load_rejects_truncated_file(checkpoint, tmp_path, keep):
 def test_load_rejects_damaged_member(checkpoint, tmp_path):
     raw = bytearray(checkpoint.read_bytes())
     start = len(raw) // 3
-    raw[start:start + 64] = bytes(64)  # zero bytes inside a compressed member; the zip directory survives
+    raw[start : start + 64] = bytes(64)  # zero bytes inside a compressed member; the zip directory survives
     path = tmp_path / "damaged.npz"
     path.write_bytes(bytes(raw))
     with pytest.raises(E.CheckpointError):
@@ -320,22 +317,22 @@ def test_load_rejects_other_grid(checkpoint):
 
 def test_load_rejects_wrong_version(checkpoint, tmp_path):
     path = tmp_path / "v99.npz"
-    _rewrite(checkpoint, path, lambda arrays, meta: meta.update(version=99))
+    rewrite(checkpoint, path, lambda arrays, meta: meta.update(version=99))
     with pytest.raises(E.CheckpointError, match="version 99"):
         E.load(path)
 
 
 def test_load_rejects_missing_and_misshapen_arrays(checkpoint, tmp_path):
     path = tmp_path / "missing.npz"
-    _rewrite(checkpoint, path, lambda arrays, meta: arrays.pop("net.occ.0.b"))
+    rewrite(checkpoint, path, lambda arrays, meta: arrays.pop("net.occ.0.b"))
     with pytest.raises(E.CheckpointError, match=r"missing arrays \['net.occ.0.b'\]"):
         E.load(path)
     path = tmp_path / "shape.npz"
-    _rewrite(checkpoint, path, lambda arrays, meta: arrays.update({"norm.feat_std": np.ones(7, np.float32)}))
+    rewrite(checkpoint, path, lambda arrays, meta: arrays.update({"norm.feat_std": np.ones(7, np.float32)}))
     with pytest.raises(E.CheckpointError, match="norm.feat_std.*shape"):
         E.load(path)
     path = tmp_path / "nan.npz"
-    _rewrite(checkpoint, path, lambda arrays, meta: arrays["net.trunk.0.w"].__setitem__((0, 0), np.nan))
+    rewrite(checkpoint, path, lambda arrays, meta: arrays["net.trunk.0.w"].__setitem__((0, 0), np.nan))
     with pytest.raises(E.CheckpointError, match="NaN"):
         E.load(path)
 
@@ -385,8 +382,10 @@ def test_ensemble_averages_its_members(tmp_path):
     model, history = E.train(jax.random.key(4), data, cfg, box=BOX, progress=False)
     assert all(leaf.shape[0] == 2 for leaf in jax.tree_util.tree_leaves(model.net))
     assert len(history["member_best_epochs"]) == 2
-    one = [dataclasses.replace(model, net=jax.tree.map(lambda a, i=i: a[i:i + 1], model.net), cfg=CFG)
-           for i in range(2)]
+    one = [
+        dataclasses.replace(model, net=jax.tree.map(lambda a, i=i: a[i : i + 1], model.net), cfg=CFG)
+        for i in range(2)
+    ]
     traj, final = jnp.asarray(data["traj"][:4]), jnp.asarray(data["final"][:4])
     probs, masses = zip(*(E.predict_batch(m, traj, final) for m in one), strict=True)
     prob, mass = E.predict_batch(model, traj, final)
