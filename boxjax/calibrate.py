@@ -21,16 +21,22 @@ value of a velocity component is the increment it commands: dv_i = clip(v_i, +-l
 The value of a position component is the (clipped) increment dp_i in m. `action_values` computes these
 from an environment action, and both the calibration and the prior use it, so they agree.
 
-Host-side functions (numpy): `fit_force_map`, `save`, `load`. Pure jnp (jit/vmap/grad safe): `forces`,
-`action_values`, `window_kinematics`, `paper_friction`, `recover_forces`, `component_force`.
+The calibration itself (simulated episodes -> transitions -> forces -> map) is
+`boxjax.calibration_run.calibrate_by_simulation`, the `boxjax calibrate` command. A map made with the
+default configuration ships in boxjax/data/calibration.npz: `default_force_map(cfg)`.
+
+Host-side functions (numpy): `fit_force_map`, `save`, `load`, `default_force_map`. Pure jnp (jit/vmap/grad
+safe): `forces`, `action_values`, `window_kinematics`, `paper_friction`, `recover_forces`, `component_force`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -57,6 +63,7 @@ CALIBRATION_FIELDS = (
     "box.size",
 )
 _TINY = 1e-12
+SHIPPED_CALIBRATION = Path(__file__).parent / "data" / "calibration.npz"
 
 
 class CalibrationError(ValueError):
@@ -433,3 +440,26 @@ def load(path, expected_config: Config) -> tuple[ForceMap, dict]:
         count=jnp.asarray(count.astype(np.int32)),
     )
     return fm, meta
+
+
+@functools.lru_cache(maxsize=4)
+def _load_default(path: str, cfg: Config) -> ForceMap:
+    try:
+        return load(path, cfg)[0]
+    except CalibrationError as e:
+        raise CalibrationError(
+            f"the shipped calibration cannot be used: {e}. Make one for this configuration with "
+            "`boxjax calibrate --out FILE` (calibration_run.calibrate_by_simulation) and pass its "
+            "force map explicitly"
+        ) from e
+
+
+def default_force_map(cfg: Config) -> ForceMap:
+    """The shipped force map (boxjax/data/calibration.npz, made by `boxjax calibrate` with the default
+    configuration; the command is in its meta), loaded once per config and checked against `cfg`.
+
+    Raises:
+      CalibrationError: the file is missing or corrupt, or `cfg` differs from the calibration's
+        configuration in any of CALIBRATION_FIELDS (friction, control_dt, belt limits, box size, ...).
+    """
+    return _load_default(str(SHIPPED_CALIBRATION), cfg)

@@ -5,6 +5,7 @@
     boxjax demo [--distribution A|B|C|D|uniform] [--plot boxjax_demo.png] [--json]
     boxjax train-estimator [--boxes 2000] [--seed S] --out DIR [--json]
     boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE] [--json]
+    boxjax calibrate [--transitions 400] [--seed S] --out FILE [--plot FILE.png] [--json]
 
 With --json the last line printed is one JSON object (the summary); everything else goes before it.
 """
@@ -91,7 +92,13 @@ def cmd_rotate(args) -> dict:
         from boxjax.controller import learned_estimator
 
         estimator = learned_estimator(cfg, args.weights)
-    ctrl = ControllerConfig(rule=args.rule, n_samples=args.samples, horizon=args.horizon)
+    ctrl = ControllerConfig(
+        rule=args.rule,
+        n_samples=args.samples,
+        horizon=args.horizon,
+        variant=args.variant,
+        planner=args.planner,
+    )
     res = run_episode(
         cfg, dist, jax.random.PRNGKey(args.seed), estimator=estimator, ctrl=ctrl, backend=args.backend
     )
@@ -101,6 +108,8 @@ def cmd_rotate(args) -> dict:
         "estimator": args.estimator,
         "backend": args.backend,
         "seed": args.seed,
+        "planner": args.planner,
+        "variant": args.variant,
         **res.summary,
     }
     if not args.json:
@@ -134,6 +143,88 @@ def cmd_estimator_eval(args) -> dict:
         raise ValueError(f"--boxes must be >= 1, got {args.boxes}")
     res = P.evaluate_estimator(args.seed, args.boxes, args.weights, DEFAULT, progress=not args.json)
     return {"command": "estimator-eval", **res}
+
+
+_FORCE_UNITS = (("dv1", "m/s"), ("dv2", "m/s"), ("dp1", "m"), ("dp2", "m"))
+
+
+def cmd_calibrate(args) -> dict:
+    """The action -> force map of paper §2.4 by simulation (calibration_run), saved with its command."""
+    import os
+
+    import jax
+    import mujoco
+    import numpy as np
+
+    from boxjax import __version__, calibrate
+    from boxjax.calibration_run import GRID_POINTS, calibrate_by_simulation
+    from boxjax.config import DEFAULT
+
+    cfg = DEFAULT
+    if args.transitions < 8:
+        raise ValueError(
+            f"--transitions must be >= 8 (samples for all four components), got {args.transitions}"
+        )
+    for opt, path in (("--out", args.out), ("--plot", args.plot)):
+        if path is not None and (path == "" or os.path.isdir(path)):
+            raise ValueError(f"{opt} must be a file path, got {path!r}")
+    t0 = time.perf_counter()
+    cal = calibrate_by_simulation(
+        cfg, jax.random.PRNGKey(args.seed), args.transitions, grid_points=GRID_POINTS, progress=not args.json
+    )
+    # Everything that decides the file's content, and nothing that does not (no wall time): the same
+    # command gives the same bytes.
+    command = f"boxjax calibrate --transitions {args.transitions} --seed {args.seed} --out {args.out}"
+    info = {k: v for k, v in cal.info.items() if k != "wall_s"}
+    meta = {
+        "command": command,
+        "seed": args.seed,
+        "key": f"jax.random.PRNGKey({args.seed})",
+        "box": "uniform",
+        "backend": "native",
+        "grid_points": GRID_POINTS,
+        "boxjax": __version__,
+        "mujoco": mujoco.__version__,
+        **info,
+    }
+    calibrate.save(args.out, cal.force_map, cfg, meta)
+    fm = cal.force_map
+    forces = {}
+    for c, name in enumerate(calibrate.FORCE_NAMES):
+        grid, mean, std = (np.asarray(a[c], np.float64) for a in (fm.grid, fm.mean, fm.std))
+        var, unit = _FORCE_UNITS[c]
+        forces[name] = {
+            "action": var,
+            "action_unit": unit,
+            "action_range": [float(grid[0]), float(grid[-1])],
+            "mean_at_ends_N": [float(mean[0]), float(mean[-1])],
+            "mean_range_N": [float(mean.min()), float(mean.max())],
+            "std_range_N": [float(std.min()), float(std.max())],
+            "samples": int(np.asarray(fm.count[c]).sum()),
+        }
+        if not args.json:
+            sys.stdout.write(
+                f"{name} ({var}, {unit}): mean {mean[0]:+.2f} N at {grid[0]:+.4g} ... {mean[-1]:+.2f} N at "
+                f"{grid[-1]:+.4g}, range [{mean.min():+.2f}, {mean.max():+.2f}] N, "
+                f"std {std.min():.2f}..{std.max():.2f} N\n"
+            )
+    summary = {
+        "command": "calibrate",
+        "transitions": cal.info["transitions"],
+        "seed": args.seed,
+        "out": args.out,
+        "episodes": cal.info["episodes"],
+        "per_component": cal.info["per_component"],
+    }
+    if args.json:  # the human-readable form is the table printed above
+        summary["forces"] = forces
+    if args.plot:
+        from boxjax.plots import plot_force_map
+
+        title = f"action -> force map (paper Fig. 3), {cal.info['transitions']} transitions, seed {args.seed}"
+        summary["plot"] = plot_force_map(fm, cal.component, cal.value, cal.force, args.plot, title)
+    summary["wall_s"] = time.perf_counter() - t0
+    return summary
 
 
 def cmd_demo(args) -> dict:
@@ -215,6 +306,18 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--rule", default="random", help="Pareto-front selection rule (planner.RULES)")
     r.add_argument("--samples", type=int, default=50, help="actions scored per control step")
     r.add_argument("--horizon", type=int, default=1, help="prediction steps per candidate")
+    r.add_argument(
+        "--planner",
+        choices=("sampling", "paper"),
+        default="sampling",
+        help="paper: one-step Pareto random shooting (§2.3); sampling: predictive sampling over sequences",
+    )
+    r.add_argument(
+        "--variant",
+        choices=("slip", "paper"),
+        default="slip",
+        help="physics prior: slip (friction on the belt-box slip) or paper (calibrated force map, eqs. 4-14)",
+    )
     r.add_argument("--plot", help="write yaw / balance / belts over the episode to this PNG")
     r.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     r.set_defaults(func=cmd_rotate)
@@ -232,6 +335,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--weights", help="checkpoint (default: the one shipped with boxjax)")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_estimator_eval)
+
+    c = sub.add_parser("calibrate", help="calibrate the action -> force map by simulation (paper §2.4)")
+    c.add_argument("--transitions", type=int, default=400, help="calibration transitions to collect")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--out", required=True, help="calibration file to write (.npz)")
+    c.add_argument("--plot", help="write the force map (paper Fig. 3, all four forces) to this PNG")
+    c.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    c.set_defaults(func=cmd_calibrate)
 
     d = sub.add_parser("demo", help="the whole pipeline on one box (what `make demo` runs)")
     d.add_argument("--distribution", choices=NAMES, default="A")

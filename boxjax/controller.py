@@ -22,6 +22,8 @@ from boxjax.config import Config
 from boxjax.sim import make_env
 from boxjax.sim.episode import EpisodeTrace
 
+PLANNERS = ("paper", "sampling")
+
 
 @dataclasses.dataclass(frozen=True)
 class ControllerConfig:
@@ -32,6 +34,21 @@ class ControllerConfig:
     velocity: str = "increment"  # how the action set's velocity columns are read (planner.VELOCITY_MODES)
     horizon: int = 1  # prediction steps per candidate (1 = the paper's one-step prediction)
     variant: str = "slip"  # physics prior (prior.VARIANTS)
+    brake_steps: int = 0  # predicted braking steps appended to each candidate's safety check
+    speed_cap: float | None = None  # m/s, |belt speed| the planner may command (None: hardware limit)
+    safe_balance: float | None = None  # m, for the "lexicographic" rule (None: half the balance limit)
+    y_margin: float | None = None
+    planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
+    sampling: Any = None  # sampling_planner.SamplingOptions (None: its defaults)
+
+    def __post_init__(self):
+        if self.planner not in PLANNERS:
+            raise ValueError(f"unknown planner {self.planner!r}; choose one of {PLANNERS}")
+        if self.rule not in planner.RULES:
+            raise ValueError(f"unknown selection rule {self.rule!r}; choose one of {planner.RULES}")
+        if self.variant not in prior.VARIANTS:
+            raise ValueError(f"unknown prior variant {self.variant!r}; choose one of {prior.VARIANTS}")
+
     explore: bool = True  # run the fixed exploration phase first (always needed by a learned estimator)
 
 
@@ -99,9 +116,24 @@ def _env(cfg: Config, backend: str):
 
 
 @lru_cache(maxsize=8)
+def _sampling_planner(cfg: Config, options):
+    from boxjax import sampling_planner as sp
+
+    return sp.make_sampling_planner(cfg, options)
+
+
+@lru_cache(maxsize=8)
 def _planner(cfg: Config, ctrl: ControllerConfig):
     return planner.make_planner(
-        cfg, n_samples=ctrl.n_samples, rule=ctrl.rule, velocity=ctrl.velocity, horizon=ctrl.horizon
+        cfg,
+        n_samples=ctrl.n_samples,
+        rule=ctrl.rule,
+        velocity=ctrl.velocity,
+        horizon=ctrl.horizon,
+        brake_steps=ctrl.brake_steps,
+        speed_cap=ctrl.speed_cap,
+        safe_balance=ctrl.safe_balance,
+        y_margin=ctrl.y_margin,
     )
 
 
@@ -123,7 +155,8 @@ def run_episode(
       estimator: "oracle", or a callable(exploration dict with s (T+1, 5), belt_speed (T+1, 2),
         actions (T, 4)) -> dict with "distribution" (MassDistribution) and "hazardous" (bool), such as
         `learned_estimator(cfg)`.
-      force_map: calibrate.ForceMap, needed by the "paper" prior variant.
+      force_map: calibrate.ForceMap for the "paper" prior variant (default: the shipped calibration,
+        `calibrate.default_force_map`).
       max_steps: control-step cap (default cfg.task.max_steps), exploration included.
     """
     from boxjax import explore
@@ -165,10 +198,27 @@ def run_episode(
     plan_ms: list[float] = []
     if why is None and not bool(state.done):
         # 4. physics-prior MPC
+        if ctrl.variant == "paper" and force_map is None:
+            from boxjax.calibrate import default_force_map
+
+            force_map = default_force_map(cfg)
         model = prior.make_prior(
             massdist.voxel_masses(belief, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
         )
-        plan = _planner(cfg, ctrl)
+        if ctrl.planner == "sampling":
+            from boxjax import sampling_planner as sp
+
+            opts = ctrl.sampling or sp.SamplingOptions()
+            splan = _sampling_planner(cfg, opts)
+            nominal = sp.initial_nominal(cfg, opts, state.belt_speed)
+
+            def plan(key, model, w, belt_speed, target_yaw):
+                nonlocal nominal
+                a, info = splan(key, model, w, belt_speed, target_yaw, nominal)
+                nominal = sp.shift_nominal(info.nominal)
+                return a, info
+        else:
+            plan = _planner(cfg, ctrl)
         window = list(exploration["s"][-prior.MIN_WINDOW :])
         while len(window) < prior.MIN_WINDOW:
             window.insert(0, window[0])

@@ -58,7 +58,7 @@ import numpy as np
 from boxjax import geometry, prior, task
 from boxjax.config import Config, GripperConfig
 
-RULES = ("random", "weighted", "lexicographic", "safety-first")
+RULES = ("random", "weighted", "lexicographic", "safety-first", "safe-random")
 VELOCITY_MODES = ("increment", "absolute")
 
 
@@ -166,6 +166,10 @@ def select(key, scores, front, balance_error, rule: str, weights=(0.5, 0.5), saf
         w1, w2 = weights
         val = w1 * jnp.log(jnp.maximum(r1, 1e-30)) + w2 * jnp.log(jnp.maximum(r2, 1e-30))
         return jnp.argmax(jnp.where(front, val, -jnp.inf))
+    if rule == "safe-random":
+        safe = front & (balance_error <= safe_balance)
+        p = safe / jnp.maximum(jnp.sum(safe), 1)
+        return jnp.where(jnp.any(safe), jax.random.choice(key, front.shape[0], p=p), _lex_best(r2, r1, front))
     if rule in ("lexicographic", "safety-first"):
         safe = front & (balance_error <= safe_balance)
         return jnp.where(jnp.any(safe), _lex_best(r1, r2, safe), _lex_best(r2, r1, front))
@@ -203,6 +207,17 @@ def overhang(s, cfg: Config) -> jax.Array:
     return jnp.abs(s[geometry.X]) + c * hx + sn * hy - cfg.gripper.belt_length / 2
 
 
+def y_excess(s, cfg: Config, y_margin: float) -> jax.Array:
+    """() m: how far the box's geometric centre lies outside the band of y in which the carriages can still
+    centre the belts on it, shrunk by y_margin (negative: inside). The belt midpoint (P1 + P2) / 2 can
+    reach [(p1_min + p2_min) / 2, (p1_max + p2_max) / 2] (+-7 cm by default)."""
+    g = cfg.gripper
+    lo = 0.5 * (g.p1_range[0] + g.p2_range[0]) + y_margin
+    hi = 0.5 * (g.p1_range[1] + g.p2_range[1]) - y_margin
+    y = s[geometry.Y]
+    return jnp.maximum(y - hi, lo - y)
+
+
 def plan(
     key,
     model: prior.PriorModel,
@@ -220,6 +235,7 @@ def plan(
     horizon: int = 1,
     brake_steps: int = 0,
     x_margin: float | None = 0.03,
+    y_margin: float | None = None,
     speed_cap: float | None = None,
 ):
     """One MPC step: (action (4,) for the environment, PlanInfo). Pure; jit it with `make_planner`.
@@ -293,6 +309,11 @@ def plan(
         over_now = overhang(window[-1], cfg) + out_now**2 / (2 * cfg.gripper.belt_accel_limit)
         feasible = feasible & ((over <= -x_margin) | (over <= over_now + 1e-6))
         violation = violation + jnp.maximum(over + x_margin, 0.0)
+    if y_margin is not None:
+        ex = jnp.max(jax.vmap(jax.vmap(lambda s: y_excess(s, cfg, y_margin)))(traj), axis=1)
+        ex_now = y_excess(window[-1], cfg, y_margin)
+        feasible = feasible & ((ex <= 0) | (ex <= ex_now + 1e-6))
+        violation = violation + jnp.maximum(ex, 0.0)
     ranked = jnp.where(feasible[:, None], scores, -2.0 - violation[:, None])  # rewards > 0 > -2 - violation
     front = pareto_front(ranked)
     choice = select(key_select, ranked, front, bal, rule, weights, safe_balance)

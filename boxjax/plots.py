@@ -176,3 +176,60 @@ def plot_demo(
     if title:
         fig.suptitle(title, fontsize=11)
     return save_figure(fig, path)
+
+
+_FORCE_PANELS = (
+    ("F1", "belt 1 speed increment dv1 (m/s)", 1.0, "F1 along x on S1 (N)"),
+    ("F2", "belt 2 speed increment dv2 (m/s)", 1.0, "F2 along x on S2 (N)"),
+    ("F3", "belt 1 position increment dp1 (mm)", 1000.0, "F3 along y on S1 (N)"),
+    ("F4", "belt 2 position increment dp2 (mm)", 1000.0, "F4 along y on S2 (N)"),
+)
+
+
+def plot_force_map(fm, component, value, force, path, title: str | None = None) -> str:
+    """The action -> force mapping (paper Fig. 3 a, b, for all four forces) as a 2 x 2 PNG, atomically.
+
+    Each panel shows one component's recovered calibration samples (action value, force) as dots, the
+    fitted mean per grid value as a line (hollow markers: bins without samples, filled by interpolation)
+    and a band of +-1 standard deviation.
+
+    Args:
+      fm: a calibrate.ForceMap (grid, mean, std, count of shape (4, K)).
+      component, value, force: (n,) the samples: active component 0..3, action value (m/s for 0, 1; m
+        for 2, 3), recovered force (N); n may be 0 (the map alone is drawn).
+    Returns the path written.
+    """
+    grid, mean, std, count = (np.asarray(a, np.float64) for a in (fm.grid, fm.mean, fm.std, fm.count))
+    comp = np.asarray(component)
+    val = np.asarray(value, np.float64)
+    f = np.asarray(force, np.float64)
+    fig = _figure((10, 7.5))
+    axes = fig.subplots(2, 2).ravel()
+    for c, (ax, (name, xlabel, scale, ylabel)) in enumerate(zip(axes, _FORCE_PANELS, strict=True)):
+        sel = comp == c
+        ax.scatter(
+            scale * val[sel], f[sel], s=9, alpha=0.35, color="C0", lw=0, label=f"samples ({sel.sum()})"
+        )
+        x = scale * grid[c]
+        ax.fill_between(x, mean[c] - std[c], mean[c] + std[c], color="C1", alpha=0.25, label="mean +- 1 std")
+        ax.plot(x, mean[c], color="C1", lw=1.8, label="mean")
+        ax.plot(x[count[c] > 0], mean[c][count[c] > 0], "o", color="C1", ms=4)
+        if np.any(count[c] == 0):
+            ax.plot(
+                x[count[c] == 0],
+                mean[c][count[c] == 0],
+                "o",
+                mfc="white",
+                color="C1",
+                ms=4,
+                label="no sample (interpolated)",
+            )
+        ax.axhline(0.0, color="0.6", lw=0.6)
+        ax.axvline(0.0, color="0.6", lw=0.6)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"{name}: {int(count[c].sum())} samples in {grid.shape[1]} bins", fontsize=9)
+        ax.legend(loc="upper left", fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    return save_figure(fig, path)

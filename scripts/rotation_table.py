@@ -1,6 +1,7 @@
 """The paper's Table 3 for this implementation: each named box, several seeds, oracle and learned H.
 
-    python scripts/rotation_table.py [--seeds 5] [--estimators oracle learned] [--out table.json]
+    python scripts/rotation_table.py [--seeds 5] [--estimators oracle learned] [--planner sampling|paper]
+        [--out table.json]
 
 Prints one JSON object (last line): per estimator and box, success rate, aborts, steps, max balance
 error, and the per-seed rows.
@@ -18,7 +19,7 @@ from tqdm import tqdm
 
 from boxjax import massdist
 from boxjax.config import DEFAULT
-from boxjax.controller import learned_estimator, run_episode
+from boxjax.controller import PLANNERS, ControllerConfig, learned_estimator, run_episode
 
 
 def main():
@@ -26,16 +27,20 @@ def main():
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--boxes", nargs="+", default=["A", "B", "C", "D", "uniform"])
     ap.add_argument("--estimators", nargs="+", default=["oracle", "learned"])
+    ap.add_argument("--planner", choices=PLANNERS, default=ControllerConfig().planner)
     ap.add_argument("--out")
     args = ap.parse_args()
     cfg = DEFAULT
+    ctrl = ControllerConfig(planner=args.planner)
     table = {}
     jobs = [(e, b, s) for e in args.estimators for b in args.boxes for s in range(args.seeds)]
     est = {"oracle": "oracle"}
     for e, b, seed in tqdm(jobs, desc="episodes", file=sys.stderr):
         if e not in est:
             est[e] = learned_estimator(cfg)
-        res = run_episode(cfg, massdist.named(b, cfg.box), jax.random.PRNGKey(seed), estimator=est[e])
+        res = run_episode(
+            cfg, massdist.named(b, cfg.box), jax.random.PRNGKey(seed), estimator=est[e], ctrl=ctrl
+        )
         row = {
             k: res.summary.get(k)
             for k in (
@@ -58,7 +63,7 @@ def main():
             cell["steps_mean_success"] = statistics.mean(r["steps"] for r in ok) if ok else None
             ran = [r["max_balance_error_m"] for r in rows if not r["aborted"]]
             cell["max_balance_error_m_max"] = max(ran) if ran else None
-    out = {"seeds": args.seeds, "table": table}
+    out = {"seeds": args.seeds, "planner": args.planner, "table": table}
     if args.out:
         from boxjax.fileio import atomic_path
 

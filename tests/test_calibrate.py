@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 
 import jax
@@ -202,3 +203,106 @@ def test_load_rejects_other_version_and_bad_arrays(tmp_path):
     np.savez(path, **{**data, "mean": mean})
     with pytest.raises(CalibrationError, match="mean"):
         calibrate.load(path, DEFAULT)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Calibration by simulation: the library function, `boxjax calibrate`, and the shipped file.
+
+
+def _run_cli(capsys, *argv):
+    from boxjax.cli import main
+
+    code = main(["calibrate", *argv])
+    captured = capsys.readouterr()
+    return code, captured
+
+
+def test_collect_transitions_are_disjoint_and_windows_chain():
+    from boxjax import calibration_run as R
+
+    tr = R.collect_transitions(DEFAULT, jax.random.PRNGKey(5), 24, progress=False)
+    n = tr.component.size
+    assert n == 24 and tr.windows.shape == (n, 4, 5) and tr.n_steps == n + 2 * tr.n_episodes
+    vals = np.asarray(jax.vmap(lambda a, v: calibrate.action_values(a, v, G))(tr.actions, tr.belt_speed))
+    # Exactly one non-zero action value per transition, the drawn component, within its increment bound.
+    nonzero = np.abs(vals) > 1e-9
+    assert np.array_equal(nonzero.sum(1), np.ones(n))
+    assert np.array_equal(np.argmax(nonzero, 1), tr.component)
+    bound = np.array([G.belt_accel_limit * G.control_dt] * 2 + [G.max_position_step] * 2)
+    assert np.all(np.abs(vals) <= bound + 1e-9)
+    # Consecutive transitions of one episode share three states: s_{t-1..t+1} of one = s_{t-2..t} of the next.
+    same = tr.episode[1:] == tr.episode[:-1]
+    assert same.any()
+    assert np.array_equal(tr.windows[:-1][same][:, 1:], tr.windows[1:][same][:, :3])
+    assert set(tr.component.tolist()) == {0, 1, 2, 3}
+
+
+def test_calibrate_command_writes_loadable_reproducible_file(tmp_path, monkeypatch, capsys):
+    files = []
+    for sub in ("a", "b"):  # the same command in two folders: the file name (and so the meta) is the same
+        d = tmp_path / sub
+        d.mkdir()
+        monkeypatch.chdir(d)
+        plot = ["--plot", "fig3.png"] if sub == "a" else []
+        code, cap = _run_cli(
+            capsys, "--transitions", "40", "--seed", "7", "--out", "calib.npz", "--json", *plot
+        )
+        assert code == 0, cap.err
+        res = json.loads(cap.out.strip().splitlines()[-1])
+        files.append(d / "calib.npz")
+    assert res["transitions"] == 40 and res["seed"] == 7 and res["out"] == "calib.npz" and res["wall_s"] > 0
+    assert set(res["forces"]) == {"F1", "F2", "F3", "F4"}
+    for f in res["forces"].values():
+        lo, hi = f["mean_range_N"]
+        assert np.isfinite([lo, hi]).all() and lo <= hi and f["std_range_N"][0] >= 0
+    assert sum(f["samples"] for f in res["forces"].values()) == 40
+    fm, meta = calibrate.load(files[0], DEFAULT)
+    assert meta["command"] == "boxjax calibrate --transitions 40 --seed 7 --out calib.npz"
+    assert meta["seed"] == 7 and meta["transitions"] == 40 and int(np.sum(fm.count)) == 40
+    assert files[0].read_bytes() == files[1].read_bytes()  # same seed -> identical file
+    png = (tmp_path / "a" / "fig3.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+    assert not (tmp_path / "b" / "fig3.png").exists()
+    # A file made for DEFAULT is refused for another configuration.
+    other = DEFAULT.replace(gripper=dataclasses.replace(G, friction=0.6))
+    with pytest.raises(CalibrationError, match=r"gripper\.friction"):
+        calibrate.load(files[0], other)
+
+
+def test_calibrate_seed_changes_the_data():
+    from boxjax import calibration_run as R
+
+    a = R.collect_transitions(DEFAULT, jax.random.PRNGKey(0), 12, progress=False)
+    b = R.collect_transitions(DEFAULT, jax.random.PRNGKey(1), 12, progress=False)
+    assert not np.array_equal(a.actions, b.actions)
+
+
+def test_calibrate_command_bad_input_exits_2(tmp_path, capsys):
+    code, cap = _run_cli(capsys, "--transitions", "3", "--out", str(tmp_path / "c.npz"))
+    assert code == 2 and "--transitions must be >= 8" in cap.err
+    code, cap = _run_cli(capsys, "--out", str(tmp_path))
+    assert code == 2 and "--out must be a file path" in cap.err
+    assert os.listdir(tmp_path) == []
+
+
+def test_shipped_calibration_loads_and_is_physical():
+    fm = calibrate.default_force_map(DEFAULT)
+    _, meta = calibrate.load(calibrate.SHIPPED_CALIBRATION, DEFAULT)
+    assert meta["command"].startswith("boxjax calibrate ") and "--seed" in meta["command"]
+    assert meta["transitions"] == int(np.sum(fm.count))
+    grid, mean = np.asarray(fm.grid, np.float64), np.asarray(fm.mean, np.float64)
+    assert grid.shape == (4, 9) and np.all(np.asarray(fm.count) > 0)
+    for c in range(4):
+        # Faster belt (or a belt moved further in +y) -> larger force on the box in that direction: the
+        # fitted means rise across the grid (least-squares slope), from end to end, and on average from
+        # the negative to the positive half.
+        slope = np.polyfit(grid[c], mean[c], 1)[0]
+        assert slope > 0, (calibrate.FORCE_NAMES[c], mean[c])
+        assert mean[c, -1] - mean[c, 0] > 5.0, (calibrate.FORCE_NAMES[c], mean[c])
+        assert mean[c, 5:].mean() > mean[c, :4].mean() + 3.0, (calibrate.FORCE_NAMES[c], mean[c])
+
+
+def test_default_force_map_rejects_other_configuration():
+    other = DEFAULT.replace(box=BoxConfig(size=(0.4, 0.3, 0.2)))
+    with pytest.raises(CalibrationError, match=r"box\.size.*boxjax calibrate"):
+        calibrate.default_force_map(other)

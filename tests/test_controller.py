@@ -49,10 +49,15 @@ def test_estimator_slot_is_used():
 
 def test_bad_controller_options_raise():
     with pytest.raises(ValueError, match="rule"):
-        run_episode(
-            CFG,
-            massdist.named("uniform", CFG.box),
-            jax.random.PRNGKey(0),
-            ctrl=ControllerConfig(rule="best-guess"),
-            max_steps=50,
-        )
+        ControllerConfig(rule="best-guess")
+    with pytest.raises(ValueError, match="planner"):
+        ControllerConfig(planner="cem")
+    with pytest.raises(ValueError, match="variant"):
+        ControllerConfig(variant="neural")
+
+
+def test_papers_one_step_planner_turns_uniform_box():
+    """The paper's planner (one-step Pareto random shooting) stays selectable and works on the easy box."""
+    ctrl = ControllerConfig(planner="paper")
+    res = run_episode(CFG, massdist.named("uniform", CFG.box), jax.random.PRNGKey(0), ctrl=ctrl)
+    assert res.summary["success"], res.summary

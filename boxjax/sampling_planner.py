@@ -1,0 +1,184 @@
+"""Predictive sampling over action sequences with the physics prior (beyond the paper's one-step planner).
+
+Why. The paper's planner (`planner.py`) scores each candidate action by the state ONE control step ahead.
+Measured in closed loop with the simulator (README, "Planner"), that is too short-sighted for boxes whose
+centre of mass is far off-centre (box C): a 0.05 s prediction cannot see that a turn started now carries
+the box's geometric centre sideways for the next half second, faster than the belts can follow, and the
+random pick on the Pareto front alternates between turning and re-centring without a plan for either.
+
+What. Predictive sampling (Howell et al. 2022, the default planner of MuJoCo MPC): keep a nominal plan of
+`horizon` actions; each control step, roll out the nominal and `n_samples - 1` gaussian perturbations of
+it with the physics prior (`prior.predict`, one vmap over sequences, one scan over time), score every
+rollout, keep the best as the new nominal, send its first action, and shift it by one step. Nothing is
+learned; the prior alone is the model.
+
+Actions are the simulator's full 4-d actions (both belt-speed setpoints and both position steps at once):
+the paper restricts its candidates to one non-zero component so that its calibrated action->force map
+applies; the "slip" prior needs no such restriction.
+
+Score (lower is better), summed over the predicted states s_1..s_H (paper's objectives, made a cost):
+  * pose:     w_yaw * yaw_error^2                     (R1 of eq. 1, without the epsilon)
+  * balance:  w_balance * (balance_error / limit)^2    (R2 of eq. 1) plus a steep barrier
+              w_barrier * relu(balance_error / limit - safe_fraction)^2 beyond safe_fraction of the limit;
+  * workspace: the same barrier on the box's overhang beyond the belt ends (x), on its distance
+              outside the band where the carriages can still centre the belts on it (y), and on each
+              belt's support: less than `support_margin` of a belt's width under the box, and the box
+              tips into the gap between the belts (`support_deficit`);
+  * effort:   w_effort * (dp / max_position_step)^2 (sideways moves drag the box; use them when needed).
+The best rollout's (R1, R2) at its worst state are reported in PlanInfo so the Pareto view of the paper
+stays available.
+
+Keys are explicit; `make_sampling_planner(cfg, **options)` returns a jitted
+`plan(key, model, window, belt_speed, target_yaw, nominal) -> (action (4,), SamplingInfo)`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from boxjax import geometry, planner, prior
+from boxjax.config import Config
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplingOptions:
+    """Settings of the predictive-sampling planner (static: changing one recompiles)."""
+
+    n_samples: int = 64  # rollouts per control step, the nominal included
+    horizon: int = 10  # control steps per rollout (0.5 s at 20 Hz)
+    speed_sigma: float = 0.04  # m/s, std of the perturbation of each belt-speed setpoint
+    position_sigma: float = 0.004  # m, std of the perturbation of each position step
+    speed_cap: float | None = 0.12  # m/s, |setpoint| limit (None: the belt speed limit); see below
+    w_yaw: float = 1.0
+    w_balance: float = 0.5
+    w_barrier: float = 1000.0
+    safe_fraction: float = 0.5  # of the balance limit, where the barrier starts
+    x_margin: float = 0.03  # m, keep the footprint this far inside the belt ends
+    y_margin: float = 0.01  # m, keep the geometric centre this far inside the carriages' reach
+    support_margin: float = 0.06  # m, each belt keeps at least this much of its width under the box
+    w_effort: float = 0.01
+
+    def __post_init__(self):
+        if self.n_samples < 2 or self.horizon < 1:
+            raise ValueError(f"need n_samples >= 2 and horizon >= 1, got {self.n_samples}, {self.horizon}")
+        if min(self.speed_sigma, self.position_sigma) < 0 or not 0 < self.safe_fraction <= 1:
+            raise ValueError("sigmas must be >= 0 and safe_fraction in (0, 1]")
+
+
+class SamplingInfo(NamedTuple):
+    """What one planning step considered. N = n_samples, H = horizon.
+
+    nominal: (H, 4) the chosen sequence (its first row is the action sent), shifted by `shift_nominal`
+      for the next step. states: (H, 5) its predicted states. cost: (N,) rollout costs (row 0 is the old
+      nominal). best: () index of the chosen rollout. balance_error: () m, worst predicted over the
+      chosen rollout. yaw_error: () rad at its last state.
+    """
+
+    nominal: jax.Array
+    states: jax.Array
+    cost: jax.Array
+    best: jax.Array
+    balance_error: jax.Array
+    yaw_error: jax.Array
+
+
+def initial_nominal(cfg: Config, options: SamplingOptions, belt_speed=None) -> jax.Array:
+    """(H, 4) the first nominal: hold the current belt speeds (zero if not given), no sideways moves."""
+    v = jnp.zeros(2) if belt_speed is None else jnp.asarray(belt_speed, jnp.float32)
+    return jnp.tile(jnp.concatenate([v, jnp.zeros(2)])[None], (options.horizon, 1)).astype(jnp.float32)
+
+
+def shift_nominal(nominal) -> jax.Array:
+    """Drop the executed first action and repeat the last one (receding horizon)."""
+    return jnp.concatenate([nominal[1:], nominal[-1:]], axis=0)
+
+
+def clip_actions(actions, cfg: Config, speed_cap: float | None = None):
+    """Clip (..., 4) actions to the hardware (and the planner's speed cap)."""
+    g = cfg.gripper
+    vmax = g.belt_speed_limit if speed_cap is None else min(speed_cap, g.belt_speed_limit)
+    hi = jnp.array([vmax, vmax, g.max_position_step, g.max_position_step], jnp.float32)
+    return jnp.clip(actions, -hi, hi)
+
+
+def rollout_sequence(model: prior.PriorModel, window, belt_speed, actions) -> jax.Array:
+    """(H, 5) predicted states for the action sequence (H, 4), feeding predictions back through the window."""
+
+    def step(carry, a):
+        w, b = carry
+        s = prior.predict(model, w, b, a)
+        return (jnp.concatenate([w[1:], s[None]]), prior.next_belt_speed(model, b, a)), s
+
+    window = jnp.asarray(window, jnp.float32)[-prior.MIN_WINDOW :]
+    _, states = jax.lax.scan(step, (window, jnp.asarray(belt_speed, jnp.float32)), actions)
+    return states
+
+
+def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
+    """() m: how much less than `margin` of belt width lies under the box on the worse-supported belt
+    (negative: both belts carry the box over more than `margin`). The box's footprint spans
+    y +- (|sin| l / 2 + |cos| w / 2); belt i covers P_i +- belt_width / 2. When the carriages spread the
+    belts until one only touches the box's edge, the box tips into the gap (the planar prior cannot see
+    that; measured in the simulator)."""
+    hx, hy, _ = cfg.box.half_size
+    half_w = cfg.gripper.belt_width / 2
+    ext = jnp.abs(jnp.sin(s[geometry.YAW])) * hx + jnp.abs(jnp.cos(s[geometry.YAW])) * hy
+    lo, hi = s[geometry.Y] - ext, s[geometry.Y] + ext
+    over1 = jnp.minimum(s[geometry.P1] + half_w, hi) - jnp.maximum(s[geometry.P1] - half_w, lo)
+    over2 = jnp.minimum(s[geometry.P2] + half_w, hi) - jnp.maximum(s[geometry.P2] - half_w, lo)
+    return margin - jnp.minimum(over1, over2)
+
+
+def rollout_cost(states, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
+    """() cost of one predicted rollout (see module docstring)."""
+    lim = cfg.task.balance_limit
+    yaw_err = states[:, geometry.YAW] - target_yaw
+    bal = jax.vmap(geometry.balance_error)(states) / lim
+    over_x = jax.vmap(lambda s: planner.overhang(s, cfg))(states) + o.x_margin
+    over_y = jax.vmap(lambda s: planner.y_excess(s, cfg, o.y_margin))(states)
+    relu2 = lambda u: jnp.square(jnp.maximum(u, 0.0))  # noqa: E731
+    support = jax.vmap(lambda s: support_deficit(s, cfg, o.support_margin))(states)
+    barrier = relu2(bal - o.safe_fraction) + relu2(over_x / lim) + relu2(over_y / lim) + relu2(support / lim)
+    effort = jnp.sum(jnp.square(actions[:, 2:] / cfg.gripper.max_position_step), axis=-1)
+    per_step = o.w_yaw * yaw_err**2 + o.w_balance * bal**2 + o.w_barrier * barrier + o.w_effort * effort
+    return jnp.sum(per_step)
+
+
+def plan(
+    key, model: prior.PriorModel, window, belt_speed, target_yaw, nominal, cfg: Config, o: SamplingOptions
+):
+    """One predictive-sampling step: (action (4,), SamplingInfo). Pure; jit with `make_sampling_planner`."""
+    nominal = jnp.asarray(nominal, jnp.float32)
+    if nominal.shape != (o.horizon, 4):
+        raise ValueError(f"nominal must have shape ({o.horizon}, 4), got {nominal.shape}")
+    sigma = jnp.array([o.speed_sigma, o.speed_sigma, o.position_sigma, o.position_sigma], jnp.float32)
+    noise = jax.random.normal(key, (o.n_samples - 1, o.horizon, 4)) * sigma
+    seqs = jnp.concatenate([nominal[None], nominal[None] + noise])
+    seqs = clip_actions(seqs, cfg, o.speed_cap)
+    states = jax.vmap(rollout_sequence, in_axes=(None, None, None, 0))(model, window, belt_speed, seqs)
+    cost = jax.vmap(rollout_cost, in_axes=(0, 0, None, None, None))(states, seqs, target_yaw, cfg, o)
+    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+    best = jnp.argmin(cost)
+    st = states[best]
+    info = SamplingInfo(
+        nominal=seqs[best],
+        states=st,
+        cost=cost,
+        best=best,
+        balance_error=jnp.max(jax.vmap(geometry.balance_error)(st)),
+        yaw_error=st[-1, geometry.YAW] - target_yaw,
+    )
+    return seqs[best, 0], info
+
+
+def make_sampling_planner(cfg: Config, options: SamplingOptions | None = None, **overrides):
+    """A jitted `plan(key, model, window, belt_speed, target_yaw, nominal) -> (action, SamplingInfo)`."""
+    o = options or SamplingOptions()
+    if overrides:
+        o = dataclasses.replace(o, **overrides)
+    return jax.jit(functools.partial(plan, cfg=cfg, o=o))

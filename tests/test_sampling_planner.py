@@ -1,0 +1,105 @@
+"""Predictive sampling over action sequences (sampling_planner): consistency with the prior's own rollout,
+the cost's barriers, the receding-horizon bookkeeping, determinism, limits and bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from boxjax import geometry, massdist, prior
+from boxjax import sampling_planner as sp
+from boxjax.config import DEFAULT
+
+CFG = DEFAULT
+G = CFG.gripper
+OPTS = sp.SamplingOptions(n_samples=16, horizon=6)
+
+
+def _model(name="uniform"):
+    return prior.make_prior(massdist.voxel_masses(massdist.named(name, CFG.box), CFG.box), None, CFG.box, G)
+
+
+S0 = jnp.array([-0.10, 0.10, 0.0, 0.0, 0.0], jnp.float32)
+WINDOW = prior.initial_window(S0)
+PLAN = sp.make_sampling_planner(CFG, OPTS)
+
+
+def test_rollout_sequence_matches_the_priors_held_action_rollout():
+    """A sequence of one repeated action is what prior.rollout predicts for that action held."""
+    model = _model("A")
+    a = jnp.array([0.12, -0.08, 0.0, 0.004], jnp.float32)
+    seq = sp.rollout_sequence(model, WINDOW, jnp.zeros(2), jnp.tile(a[None], (5, 1)))
+    held = prior.rollout(model, WINDOW, jnp.zeros(2), a, 5)
+    np.testing.assert_allclose(np.asarray(seq), np.asarray(held), atol=1e-6)
+
+
+def test_cost_barrier_starts_at_safe_fraction_of_the_balance_limit():
+    lim = CFG.task.balance_limit
+    o = sp.SamplingOptions(
+        w_yaw=0.0, w_balance=0.0, w_effort=0.0, w_barrier=1.0, safe_fraction=0.5, horizon=1
+    )
+    acts = jnp.zeros((1, 4))
+
+    def cost_at(balance):
+        s = S0.at[geometry.Y].set(balance)[None]
+        return float(sp.rollout_cost(s, acts, 0.0, CFG, o))
+
+    assert cost_at(0.4 * lim) == 0.0
+    np.testing.assert_allclose(cost_at(0.75 * lim), 0.25**2, rtol=1e-5)  # relu(0.75 - 0.5)^2
+    # Beyond the belt ends (x) the same barrier applies, in units of the balance limit.
+    over = S0.at[geometry.X].set(G.belt_length / 2 - CFG.box.half_size[0] + 0.01)[None]  # 1 cm over
+    np.testing.assert_allclose(
+        float(sp.rollout_cost(over, acts, 0.0, CFG, o)), ((0.01 + o.x_margin) / lim) ** 2, rtol=1e-4
+    )
+
+
+def test_plans_from_rest_turn_the_box_the_right_way_and_respect_limits():
+    """From rest, the plans towards yaw + pi/2 run belt 1 (left, y < 0) faster forwards (+x) than belt 2:
+    that turns the box counter-clockwise (paper Fig. 1), and the predicted yaw grows. Every action is
+    within the limits. (Default options: the planner the controller uses.)"""
+    o = sp.SamplingOptions()
+    plan = sp.make_sampling_planner(CFG, o)
+    model = _model()
+    nominal = sp.initial_nominal(CFG, o)
+    key = jax.random.PRNGKey(0)
+    for _ in range(6):  # receding-horizon iterations on the same state
+        key, k = jax.random.split(key)
+        a, info = plan(k, model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
+        nominal = sp.shift_nominal(info.nominal)
+    a, states = np.asarray(a), np.asarray(info.states)
+    assert a[0] - a[1] > 0.02, a
+    assert states[-1, geometry.YAW] > 0.02, states[-1]  # rad, turning the right way
+    assert np.all(np.abs(a[:2]) <= o.speed_cap + 1e-7) and np.all(np.abs(a[2:]) <= G.max_position_step + 1e-7)
+    assert float(info.yaw_error) < 0  # still short of the target after 0.5 s from rest
+    assert info.states.shape == (o.horizon, 5) and info.cost.shape == (o.n_samples,)
+
+
+def test_plan_keeps_the_best_and_is_deterministic_per_key():
+    model = _model("C")
+    nominal = sp.initial_nominal(CFG, OPTS)
+    a1, i1 = PLAN(jax.random.PRNGKey(3), model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
+    a2, i2 = PLAN(jax.random.PRNGKey(3), model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
+    np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
+    cost = np.asarray(i1.cost)
+    assert cost[int(i1.best)] == cost.min() <= cost[0]  # the old nominal (row 0) is never lost
+    np.testing.assert_array_equal(np.asarray(i1.nominal[0]), np.asarray(a1))
+
+
+def test_shift_nominal_and_bad_input():
+    n = jnp.arange(12.0).reshape(3, 4)
+    np.testing.assert_array_equal(np.asarray(sp.shift_nominal(n)), np.asarray(jnp.stack([n[1], n[2], n[2]])))
+    with pytest.raises(ValueError, match="nominal must have shape"):
+        PLAN(jax.random.PRNGKey(0), _model(), WINDOW, jnp.zeros(2), 1.0, jnp.zeros((3, 4)))
+    with pytest.raises(ValueError, match="n_samples"):
+        sp.SamplingOptions(n_samples=1)
+
+
+def test_support_deficit_hand_computed():
+    """Box 0.30 m wide at yaw 0 spans y +-0.15; a 0.10 m belt at P1 = -0.10 lies fully under it."""
+    np.testing.assert_allclose(float(sp.support_deficit(S0, CFG, 0.04)), 0.04 - 0.10, atol=1e-6)
+    spread = S0.at[geometry.P1].set(-0.19)  # belt 1 covers [-0.24, -0.14]: 1 cm under the box
+    np.testing.assert_allclose(float(sp.support_deficit(spread, CFG, 0.04)), 0.03, atol=1e-6)
+    turned = S0.at[geometry.YAW].set(jnp.pi / 2).at[geometry.P1].set(-0.19)  # now spans y +-0.20
+    np.testing.assert_allclose(float(sp.support_deficit(turned, CFG, 0.04)), 0.04 - 0.06, atol=1e-6)
