@@ -28,6 +28,7 @@ centre of mass; angular acceleration tau / I_zz (planar); second-order Taylor st
   the belt feels no force however fast the belt runs, and a position step drags only as long as the box
   lags the carriage. So here, for each contact element Q of the box on belt i (the paper's S_i),
       delta F_Q = mu_k N_Q (u_belt_i - rdot_Q) / |u_belt_i - rdot_Q|      (Coulomb, regularised)
+  (the isotropic form; with the simulator's pyramidal friction cone, the diamond law below: ``cone``)
   where u_belt_i = (belt surface speed, carriage sideways speed) during the step, given the action: the
   belt speed ramps linearly to its setpoint at <= belt_accel_limit (as the simulator's belt servo does),
   the carriage follows a critically damped step of natural frequency `carriage_omega` to P_i + dp_i.
@@ -39,7 +40,8 @@ centre of mass; angular acceleration tau / I_zz (planar); second-order Taylor st
       the overlap, and so does MuJoCo's box-box contact. Where the load sits along the box decides how
       much the sideways sliding of the box's ends resists the turn: with the load spread evenly over
       the bottom voxels ("voxels", area-weighted; the paper's S_i) the predicted steady turn rate for
-      belts at +-0.2 m/s is ~1.15 rad/s against ~0.7 rad/s in the simulator, with the polygon ~0.6.
+      belts at +-0.2 m/s is ~1.15 rad/s against ~0.68 rad/s in the simulator, with the polygon ~0.62
+      (isotropic friction) or ~0.71 (pyramidal, the default with the simulator's cone; uniform box).
       Measured against the simulator (1223 transitions of random restricted actions on boxes uniform,
       A, B, C), median one-step yaw error for position actions 0.15 deg (polygon) vs 0.56 deg (voxels);
     * normal loads N_Q (``normal``): "pressure" (default) a rigid box on an elastic belt surface: a
@@ -56,10 +58,28 @@ centre of mass; angular acceleration tau / I_zz (planar); second-order Taylor st
       The implicit velocity solves a small convex problem (see `_explain_slip`), so sticking is
       captured (a box on belts accelerating below mu g follows them) without chatter;
     * contact elements and loads are evaluated once, at time t (as the paper's observed S_i), and move
-      rigidly with the box within the step.
-  Ignored (both variants): the load shift from friction acting below the centre of mass, the residual of
-  the carriage's previous move, belt-speed tracking error, and the anisotropy of the simulator's
-  pyramidal friction cones (see the validation notes in the report).
+      rigidly with the box within the step;
+    * the friction law follows the contact's friction cone (``cone``, default: the gripper's
+      `GripperConfig.contact_cone`). With MuJoCo's pyramidal cone (the simulator's default) a contact
+      transmits |f_x| + |f_y| <= mu N in the conveyor axes (a diamond, not a disk), so a sliding contact
+      pushes along the axis of its larger slip component with the full mu N, and only with mu N / sqrt 2
+      along a diagonal. Measured in the simulator (580k contact samples): the friction saturates at
+      |f_x| + |f_y| = mu N for slips above ~5 mm/s and points along the dominant axis for slip
+      directions up to ~40 degrees from it. The isotropic (elliptic) law is then wrong where it matters
+      most: in a turn the box's ends slide diagonally, so the elliptic prior over-predicts the friction
+      that resists the turn. For belts at +-0.2 m/s from rest, 30 steps open loop: the simulator turns
+      A and B by 0.91 / 0.97 rad (drifting 4-5 cm); the pyramidal prior by 0.93 / 0.99 rad, the elliptic
+      one by only 0.12 / 0.25 rad while predicting a 21-24 cm slide along the belts. One-step errors
+      (benchmarks/prediction_error.py, 20000 transitions, median): position 0.33 -> 0.30 mm, yaw 0.053
+      -> 0.037 deg (constant velocity: 0.53 mm, 0.062 deg); on spinning boxes yaw 0.101 -> 0.065 deg
+      (constant velocity 0.094 deg).
+  Ignored (both variants): the load shift from friction acting below the centre of mass, the box's
+  rocking on its contact points (the simulator's box-belt contacts carry the load on 1-2 points per belt
+  that move between corners from one 2 ms physics step to the next; the load-weighted centre of each
+  belt's patch, averaged over a step, differs from the rigid-pressure model by ~4 cm along x, median),
+  the residual of the carriage's previous move, and belt-speed tracking error (measured negligible:
+  feeding the simulator's own belt and carriage trajectories changes the one-step errors by < 0.01 mm).
+  The "paper" variant also ignores the cone's anisotropy.
 
 Velocities and the yaw are continuous (not wrapped) in the predicted state: yaw_next = yaw_t + delta.
 """
@@ -84,6 +104,7 @@ MIN_WINDOW = 3  # states s_{t-2}, s_{t-1}, s_t: second-order velocities and the 
 VARIANTS = ("slip", "paper")
 NORMALS = ("pressure", "columns")
 CONTACTS = ("voxels", "polygon")
+CONES = ("gripper", "elliptic", "pyramidal")
 _TINY = 1e-12
 _MIN_WIDTH = 1e-3  # m, smallest projected footprint width (keeps the overlap formula well conditioned)
 _BOX, _GRIPPER = BoxConfig(), GripperConfig()
@@ -103,6 +124,9 @@ class PriorParams:
     carriage_omega: rad/s, natural frequency of the critically damped carriage step response ("slip");
       math.inf means constant sideways speed dp / control_dt over the step. The default matches the
       simulator's servo (kp 5e4 N/m, kv 1e3 N s/m on 5 kg: 100 rad/s, 96 % of the step done in 0.05 s).
+    cone: the friction law at each contact element ("slip"): "elliptic" isotropic Coulomb, "pyramidal"
+      MuJoCo's pyramidal cone (|f_x| + |f_y| <= mu N, see `dissipation`), or "gripper" (default) the
+      cone the gripper is simulated with (GripperConfig.contact_cone).
     """
 
     variant: str = "slip"
@@ -112,6 +136,7 @@ class PriorParams:
     contact: str = "polygon"
     normal: str = "pressure"
     carriage_omega: float = 100.0
+    cone: str = "gripper"
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -120,6 +145,8 @@ class PriorParams:
             raise ValueError(f"unknown normal-load model {self.normal!r}; choose one of {NORMALS}")
         if self.contact not in CONTACTS:
             raise ValueError(f"unknown contact model {self.contact!r}; choose one of {CONTACTS}")
+        if self.cone not in CONES:
+            raise ValueError(f"unknown friction cone {self.cone!r}; choose one of {CONES}")
         if self.contact == "polygon" and self.normal == "columns":
             raise ValueError("normal='columns' (the paper's V_i) needs contact='voxels'")
         if self.n_substeps < 1 or self.n_iterations < 1 or self.slip_eps <= 0 or not self.carriage_omega > 0:
@@ -376,7 +403,8 @@ def normal_loads(model: PriorModel, contacts: Contacts) -> jax.Array:
     q = contacts.offsets  # (2, E, 2); frame-independent: the moments vanish in any frame
     phi = jnp.concatenate([jnp.ones_like(w)[..., None], q], axis=-1)  # (2, E, 3)
     a = jnp.einsum("be,bek,bel->kl", w, phi, phi)
-    a = a + (1e-6 * a[0, 0] + _TINY) * jnp.eye(3)  # ridge: a contact set on one line is degenerate
+    # Ridge: a contact set on one line is degenerate. (dtype: stays float32 under jax_enable_x64.)
+    a = a + (1e-6 * a[0, 0] + _TINY) * jnp.eye(3, dtype=a.dtype)
     mg = model.mass * g
     coef = _solve3(a, jnp.stack([mg, 0.0 * mg, 0.0 * mg]))
     n = w * jnp.maximum(phi @ coef, 0.0)
@@ -396,8 +424,8 @@ def _belt_profiles(model: PriorModel, s_t, belt_speed, action):
     acc = jnp.clip((sp - belt_speed) / dt, -gr.belt_accel_limit, gr.belt_accel_limit)
     dp = jnp.clip(action[2:], -gr.max_position_step, gr.max_position_step)
     p = s_t[:2]
-    lo = jnp.array([gr.p1_range[0], gr.p2_range[0]])
-    hi = jnp.array([gr.p1_range[1], gr.p2_range[1]])
+    lo = jnp.array([gr.p1_range[0], gr.p2_range[0]], s_t.dtype)  # keeps float32 under jax_enable_x64
+    hi = jnp.array([gr.p1_range[1], gr.p2_range[1]], s_t.dtype)
     p_next = jnp.clip(p + dp, lo, hi)
     d = p_next - p
     w = model.params.carriage_omega
@@ -431,79 +459,114 @@ def _slip(u, belt_velocity, off):
     return belt_velocity[:, None, :] - vq
 
 
-def dissipation(u, belt_velocity, off, loads, mu: float, eps: float):
-    """(...) sum over contacts of mu N sqrt(|slip|^2 + eps^2) (W) for body velocities u (..., 3): the
-    convex potential whose negative gradient w.r.t. u is the generalised friction force."""
+_DIAG = 1.0 / math.sqrt(2.0)  # the pyramid's diagonal directions e1 = (1, 1) / sqrt 2, e2 = (1, -1) / sqrt 2
+
+
+def _diag(v):
+    """(..., 2) components of planar vectors v along the diagonals e1, e2 (Q v, Q = Q^T = Q^-1)."""
+    return jnp.stack([_DIAG * (v[..., 0] + v[..., 1]), _DIAG * (v[..., 0] - v[..., 1])], axis=-1)
+
+
+def dissipation(u, belt_velocity, off, loads, mu: float, eps: float, cone: str = "elliptic"):
+    """(...) the friction's convex potential (W) for body velocities u (..., 3), whose negative gradient
+    w.r.t. u is the generalised friction force, summed over the contact elements:
+
+    "elliptic": mu N sqrt(|s|^2 + eps^2), isotropic regularised Coulomb on the slip s;
+    "pyramidal": (mu N / sqrt 2) (sqrt((s . e1)^2 + eps^2) + sqrt((s . e2)^2 + eps^2)) with the diagonals
+    e1 = (1, 1) / sqrt 2, e2 = (1, -1) / sqrt 2. MuJoCo's pyramidal cone (condim 3: edges n +- mu t1,
+    n +- mu t2; the contact frame's tangents are the conveyor's y and x axes for the flat belt contacts)
+    lets a contact transmit |f_x| + |f_y| <= mu N, a diamond. A sliding contact dissipates the most it can,
+    sup over the diamond of f . s = mu N max(|s_x|, |s_y|) = (mu N / sqrt 2) (|s . e1| + |s . e2|): two 1-D
+    Coulomb frictions of coefficient mu / sqrt 2 along the diagonals, regularised like the isotropic law.
+    The force is then mu N along the axis of the larger slip component (the diamond's vertex), and
+    mu N / sqrt 2 along a diagonal slip.
+    """
     s = _slip(u, belt_velocity, off)
-    return jnp.sum(mu * loads * jnp.sqrt(jnp.sum(s * s, -1) + eps * eps), axis=(-2, -1))
+    if cone == "elliptic":
+        per = jnp.sqrt(jnp.sum(s * s, -1) + eps * eps)
+    else:
+        z = _diag(s)
+        per = _DIAG * jnp.sum(jnp.sqrt(z * z + eps * eps), -1)
+    return jnp.sum(mu * loads * per, axis=(-2, -1))
 
 
-def friction_force(u, belt_velocity, off, loads, mu: float, eps: float):
+def friction_force(u, belt_velocity, off, loads, mu: float, eps: float, cone: str = "elliptic"):
     """Belt friction on the box ("slip" variant): generalised force, its Jacobian, per-belt forces, and
     the quadratic majoriser of `dissipation` at u.
 
     Per contact element Q on belt i: slip s = u_belt_i - (v + omega perp(o_Q)) = u_belt_i - G u with
-    G = [I2 | perp(o_Q)]; force mu N s r with r = 1 / sqrt(|s|^2 + eps^2) (regularised Coulomb);
-    d(force)/ds = mu N (r I - r^3 s s^T) =: D; the generalised force is sum G^T f and its Jacobian
-    -sum G^T D G = -sum [[D, D p], [p^T D, p^T D p]] with p = perp(o_Q) (analytic: cheaper than jacfwd
-    under vmap, and tested against it). Majoriser (IRLS): with weights w = mu N r,
-    dissipation(u') <= const + sum w |u_belt - G u'|^2 / 2, i.e. the quadratic u'^T A u' / 2 - b^T u'
-    with A = sum w G^T G, b = sum w G^T u_belt.
+    G = [I2 | perp(o_Q)]; force f = W s = -d dissipation / d s with W a 2 x 2 weight; D = d f / d s; the
+    generalised force is sum G^T f and its Jacobian -sum G^T D G = -sum [[D, D p], [p^T D, p^T D p]]
+    with p = perp(o_Q) (analytic: cheaper than jacfwd under vmap, and tested against it). Majoriser
+    (IRLS): every term of `dissipation` is a concave function of a square, so dissipation(u') <= const +
+    sum (u_belt - G u')^T W (u_belt - G u') / 2 with W frozen at u, i.e. the quadratic u'^T A u' / 2 -
+    b^T u' with A = sum G^T W G, b = sum G^T W u_belt = force + A u.
+      "elliptic": W = w I, w = mu N / sqrt(|s|^2 + eps^2); D = w I - w s s^T / (|s|^2 + eps^2).
+      "pyramidal": W and D are diagonal along e1, e2: with z_j = s . e_j, w_j = (mu N / sqrt 2) /
+      sqrt(z_j^2 + eps^2) and d_j = w_j eps^2 / (z_j^2 + eps^2), W = Q diag(w) Q, D = Q diag(d) Q (Q the
+      reflection onto the diagonals, Q = Q^T = Q^-1), so the sums run in the diagonal axes (with
+      p' = Q p) and are turned back once.
 
     Args:
       u: (3,) body velocity (vx, vy, omega) of the centre of mass (m/s, rad/s).
       belt_velocity: (2, 2) surface velocity (x, y) of belt 1 and belt 2 (m/s).
       off: (2, E, 2) m, contact element positions relative to the centre of mass (conveyor axes).
       loads: (2, E) N, normal force of belt 1 / belt 2 on each element.
-      mu: friction coefficient; eps: m/s regularisation.
+      mu: friction coefficient; eps: m/s regularisation; cone: "elliptic" or "pyramidal" (`dissipation`).
     Returns:
       (force (3,) = (Fx N, Fy N, tau N m), jac (3, 3) d force / d u, per_belt (2, 2) N, A (3, 3), b (3,)).
     """
     p = perp(off)  # (2, E, 2)
-    slip = _slip(u, belt_velocity, off)  # (2, E, 2)
-    sx, sy = slip[..., 0], slip[..., 1]
-    r = jax.lax.rsqrt(sx * sx + sy * sy + eps * eps)  # (2, E)
-    w = mu * loads * r
-    r3 = w * r * r
-    px, py = p[..., 0], p[..., 1]
-    dxx, dyy, dxy = w - r3 * sx * sx, w - r3 * sy * sy, -r3 * sx * sy
-    dpx, dpy = dxx * px + dxy * py, dxy * px + dyy * py
-    fx, fy = w * sx, w * sy
-    # One reduction over the contacts for every sum (much faster on CPU than a dozen small ones).
-    terms = jnp.stack(
-        [
-            fx,
-            fy,
-            off[..., 0] * fy - off[..., 1] * fx,  # force, torque
-            dxx,
-            dyy,
-            dxy,
-            dpx,
-            dpy,
-            px * dpx + py * dpy,  # friction Jacobian blocks
-            w,
-            w * px,
-            w * py,
-            w * (px * px + py * py),
-        ],  # majoriser
-        axis=-1,
-    )  # (2, E, 13)
-    per = jnp.sum(terms, axis=1)  # (2 belts, 13)
-    t = jnp.sum(per, axis=0)
-    force = t[0:3]
-    sxx, syy, sxy, spx, spy, spp = t[3], t[4], t[5], t[6], t[7], t[8]
-    jac = -jnp.array([[sxx, sxy, spx], [sxy, syy, spy], [spx, spy, spp]])
-    wt, wpx, wpy, wpp = t[9], t[10], t[11], t[12]
-    a_mm = jnp.array([[wt, 0.0, wpx], [0.0, wt, wpy], [wpx, wpy, wpp]])
-    # b = sum w G^T u_belt, per belt: (sum w) u_belt_x, (sum w) u_belt_y, (sum w p) . u_belt.
-    b_mm = jnp.stack(
-        [
-            per[:, 9] @ belt_velocity[:, 0],
-            per[:, 9] @ belt_velocity[:, 1],
-            jnp.sum(per[:, 10] * belt_velocity[:, 0] + per[:, 11] * belt_velocity[:, 1]),
-        ]
-    )
-    return force, jac, per[:, 0:2], a_mm, b_mm
+    if cone == "elliptic":
+        slip = _slip(u, belt_velocity, off)  # (2, E, 2)
+        sx, sy = slip[..., 0], slip[..., 1]
+        r = jax.lax.rsqrt(sx * sx + sy * sy + eps * eps)  # (2, E)
+        w = mu * loads * r
+        r3 = w * r * r
+        px, py = p[..., 0], p[..., 1]
+        dxx, dyy, dxy = w - r3 * sx * sx, w - r3 * sy * sy, -r3 * sx * sy
+        dpx, dpy = dxx * px + dxy * py, dxy * px + dyy * py
+        fx, fy = w * sx, w * sy
+        # One reduction over the contacts for every sum (much faster on CPU than a dozen small ones).
+        terms = [fx, fy, px * fx + py * fy]  # force, torque (p . f = o x f)
+        terms += [dxx, dyy, dxy, dpx, dpy, px * dpx + py * dpy]  # friction Jacobian blocks
+        terms += [w, w * px, w * py, w * (px * px + py * py)]  # majoriser
+        per = jnp.sum(jnp.stack(terms, axis=-1), axis=1)  # (2 belts, 13)
+        t = jnp.sum(per, axis=0)
+        force = t[0:3]
+        sxx, syy, sxy, spx, spy, spp = t[3], t[4], t[5], t[6], t[7], t[8]
+        jac = -jnp.array([[sxx, sxy, spx], [sxy, syy, spy], [spx, spy, spp]])
+        wt, wpx, wpy, wpp = t[9], t[10], t[11], t[12]
+        a_mm = jnp.array([[wt, 0.0, wpx], [0.0, wt, wpy], [wpx, wpy, wpp]])
+        per_belt = per[:, 0:2]
+    else:
+        # Everything in the diagonal axes: z = Q s = Q u_belt - Q v - omega p', p' = Q p.
+        pd = _diag(p)  # (2, E, 2)
+        z = _diag(belt_velocity)[:, None, :] - _diag(u[:2]) - u[2] * pd
+        q = jax.lax.rsqrt(z * z + eps * eps)  # (2, E, 2)
+        w = (_DIAG * mu) * loads[..., None] * q
+        dd = w * (eps * eps) * q * q
+        f = w * z
+        dp, wp = dd * pd, w * pd
+        terms = [f, jnp.sum(pd * f, -1, keepdims=True)]  # force (diagonal axes), torque
+        terms += [dd, dp, jnp.sum(dp * pd, -1, keepdims=True)]  # friction Jacobian blocks
+        terms += [w, wp, jnp.sum(wp * pd, -1, keepdims=True)]  # majoriser
+        per = jnp.sum(jnp.concatenate(terms, axis=-1), axis=1)  # (2 belts, 13)
+        t = jnp.sum(per, axis=0)
+
+        def back(s1, s2, s1p, s2p, spp):
+            """G^T Q diag(s) Q G sums from their diagonal-axes parts: the 3 x 3 block matrix."""
+            h = 0.5 * (s1 + s2)
+            k = 0.5 * (s1 - s2)
+            cx, cy = _DIAG * (s1p + s2p), _DIAG * (s1p - s2p)
+            return jnp.array([[h, k, cx], [k, h, cy], [cx, cy, spp]])
+
+        force = jnp.stack([_DIAG * (t[0] + t[1]), _DIAG * (t[0] - t[1]), t[2]])
+        jac = -back(*(t[3:8]))
+        a_mm = back(*(t[8:13]))
+        per_belt = _diag(per[:, 0:2])
+    b_mm = force + a_mm @ u  # = sum G^T W u_belt, since force = sum G^T W (u_belt - G u)
+    return force, jac, per_belt, a_mm, b_mm
 
 
 def _explain_slip(model: PriorModel, window, belt_speed, action):
@@ -511,6 +574,7 @@ def _explain_slip(model: PriorModel, window, belt_speed, action):
     dt = gr.control_dt
     h = dt / prm.n_substeps
     mu, eps = gr.friction, prm.slip_eps
+    cone = gr.contact_cone if prm.cone == "gripper" else prm.cone
     s_t = window[-1]
     kin = calibrate.window_kinematics(window, model.com[:2], dt)
     contacts = polygon_contacts(model, s_t) if prm.contact == "polygon" else voxel_contacts(model, s_t)
@@ -528,10 +592,10 @@ def _explain_slip(model: PriorModel, window, belt_speed, action):
 
         def objectives(uu):  # (k, 3) candidate velocities -> (k,) objective values
             du = uu - u0
-            return 0.5 * jnp.sum(du * mdiag * du, -1) + h * dissipation(uu, ub, off, loads, mu, eps)
+            return 0.5 * jnp.sum(du * mdiag * du, -1) + h * dissipation(uu, ub, off, loads, mu, eps, cone)
 
         def iterate(uc, _):
-            force, jac, fb, a_mm, b_mm = friction_force(uc, ub, off, loads, mu, eps)
+            force, jac, fb, a_mm, b_mm = friction_force(uc, ub, off, loads, mu, eps, cone)
             u_newton = uc - _solve3(mmat - h * jac, mdiag * (uc - u0) - h * force)
             u_mm = _solve3(mmat + h * a_mm, mdiag * u0 + h * b_mm)
             cand = jnp.stack([u_newton, u_mm])
