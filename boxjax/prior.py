@@ -76,7 +76,9 @@ centre of mass; angular acceleration tau / I_zz (planar); second-order Taylor st
   Ignored (both variants): the load shift from friction acting below the centre of mass, the box's
   rocking on its contact points (the simulator's box-belt contacts carry the load on 1-2 points per belt
   that move between corners from one 2 ms physics step to the next; the load-weighted centre of each
-  belt's patch, averaged over a step, differs from the rigid-pressure model by ~4 cm along x, median),
+  belt's patch, averaged over a step, differs from the rigid-pressure model by ~4 cm along x, median;
+  this decides the turn a position step causes, so for position actions the predicted yaw change beyond
+  constant velocity correlates only ~0.3 with the simulator's, where the translation correlates ~0.7),
   the residual of the carriage's previous move, and belt-speed tracking error (measured negligible:
   feeding the simulator's own belt and carriage trajectories changes the one-step errors by < 0.01 mm).
   The "paper" variant also ignores the cone's anisotropy.
