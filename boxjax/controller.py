@@ -37,7 +37,8 @@ class ControllerConfig:
     brake_steps: int = 0  # predicted braking steps appended to each candidate's safety check
     speed_cap: float | None = None  # m/s, |belt speed| the planner may command (None: hardware limit)
     safe_balance: float | None = None  # m, for the "lexicographic" rule (None: half the balance limit)
-    y_margin: float | None = None
+    y_margin: float | None = None  # m, paper planner: keep the box centre inside the carriages' reach
+    explore: bool = True  # run the fixed exploration phase first (always needed by a learned estimator)
     planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
     sampling: Any = None  # sampling_planner.SamplingOptions (None: its defaults)
 
@@ -48,8 +49,6 @@ class ControllerConfig:
             raise ValueError(f"unknown selection rule {self.rule!r}; choose one of {planner.RULES}")
         if self.variant not in prior.VARIANTS:
             raise ValueError(f"unknown prior variant {self.variant!r}; choose one of {prior.VARIANTS}")
-
-    explore: bool = True  # run the fixed exploration phase first (always needed by a learned estimator)
 
 
 class EpisodeResult(NamedTuple):

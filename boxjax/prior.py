@@ -712,21 +712,26 @@ def next_belt_speed(model: PriorModel, belt_speed, action) -> jax.Array:
     return belt_speed + jnp.clip(sp - belt_speed, -dv, dv)
 
 
-def rollout(model: PriorModel, window, belt_speed, action, horizon: int, brake_steps: int = 0) -> jax.Array:
-    """(horizon + brake_steps, 5) predicted states when `action` is held for `horizon` steps (setpoints
-    held; position increments repeated), then the belts are braked for `brake_steps` steps (setpoints 0,
-    no position change: they slow down at belt_accel_limit). Each step feeds the predicted states back
-    through the window, so velocities come from the same finite differences as for observed states."""
-    window = jnp.asarray(window, jnp.float32)[-MIN_WINDOW:]
-    action = jnp.asarray(action, jnp.float32)
-    brake = jnp.zeros(4, jnp.float32)
-    n = horizon + brake_steps
+def rollout_sequence(model: PriorModel, window, belt_speed, actions) -> jax.Array:
+    """(H, 5) predicted states for the action sequence `actions` (H, 4). Each step feeds the predicted
+    state back through the window, so velocities come from the same finite differences as for observed
+    states, and the belt speeds follow the setpoints at <= belt_accel_limit (`next_belt_speed`)."""
 
-    def step(carry, k):
+    def step(carry, a):
         w, b = carry
-        a = jnp.where(k < horizon, action, brake)
         s = predict(model, w, b, a)
         return (jnp.concatenate([w[1:], s[None]]), next_belt_speed(model, b, a)), s
 
-    _, states = jax.lax.scan(step, (window, jnp.asarray(belt_speed, jnp.float32)), jnp.arange(n))
+    window = jnp.asarray(window, jnp.float32)[-MIN_WINDOW:]
+    carry = (window, jnp.asarray(belt_speed, jnp.float32))
+    _, states = jax.lax.scan(step, carry, jnp.asarray(actions, jnp.float32))
     return states
+
+
+def rollout(model: PriorModel, window, belt_speed, action, horizon: int, brake_steps: int = 0) -> jax.Array:
+    """(horizon + brake_steps, 5) predicted states when `action` is held for `horizon` steps (setpoints
+    held; position increments repeated), then the belts are braked for `brake_steps` steps (setpoints 0,
+    no position change: they slow down at belt_accel_limit); see `rollout_sequence`."""
+    action = jnp.asarray(action, jnp.float32)
+    held = jnp.broadcast_to(action, (horizon, 4))
+    return rollout_sequence(model, window, belt_speed, jnp.concatenate([held, jnp.zeros((brake_steps, 4))]))

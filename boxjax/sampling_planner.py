@@ -106,19 +106,6 @@ def clip_actions(actions, cfg: Config, speed_cap: float | None = None):
     return jnp.clip(actions, -hi, hi)
 
 
-def rollout_sequence(model: prior.PriorModel, window, belt_speed, actions) -> jax.Array:
-    """(H, 5) predicted states for the action sequence (H, 4), feeding predictions back through the window."""
-
-    def step(carry, a):
-        w, b = carry
-        s = prior.predict(model, w, b, a)
-        return (jnp.concatenate([w[1:], s[None]]), prior.next_belt_speed(model, b, a)), s
-
-    window = jnp.asarray(window, jnp.float32)[-prior.MIN_WINDOW :]
-    _, states = jax.lax.scan(step, (window, jnp.asarray(belt_speed, jnp.float32)), actions)
-    return states
-
-
 def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
     """() m: how much less than `margin` of belt width lies under the box on the worse-supported belt
     (negative: both belts carry the box over more than `margin`). The box's footprint spans
@@ -160,7 +147,7 @@ def plan(
     noise = jax.random.normal(key, (o.n_samples - 1, o.horizon, 4)) * sigma
     seqs = jnp.concatenate([nominal[None], nominal[None] + noise])
     seqs = clip_actions(seqs, cfg, o.speed_cap)
-    states = jax.vmap(rollout_sequence, in_axes=(None, None, None, 0))(model, window, belt_speed, seqs)
+    states = jax.vmap(prior.rollout_sequence, in_axes=(None, None, None, 0))(model, window, belt_speed, seqs)
     cost = jax.vmap(rollout_cost, in_axes=(0, 0, None, None, None))(states, seqs, target_yaw, cfg, o)
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
     best = jnp.argmin(cost)

@@ -60,7 +60,11 @@ def _select(rule):
 
 
 @settings(max_examples=40, deadline=None)
-@given(scores_strategy, st.integers(0, 2**31 - 1), st.sampled_from(["random", "weighted", "lexicographic"]))
+@given(
+    scores_strategy,
+    st.integers(0, 2**31 - 1),
+    st.sampled_from(["random", "weighted", "lexicographic", "safe-random"]),
+)
 def test_selection_returns_a_front_member(s, seed, rule):
     s = s + 1.0  # rewards are positive
     front = planner.pareto_front(jnp.asarray(s))
@@ -77,6 +81,27 @@ def test_lexicographic_rule_by_hand():
     assert int(_select("lexicographic")(jax.random.key(0), s, front, bal)) == 2
     # Nothing safe: the best balance (row 3).
     assert int(_select("lexicographic")(jax.random.key(0), s, front, bal + 0.1)) == 3
+
+
+def test_safe_random_rule_by_hand():
+    # Safe (<= 2 cm) front members: rows 1, 2; every key picks one of them.
+    s = jnp.array([[9.0, 1.0], [2.0, 5.0], [3.0, 4.0], [1.0, 6.0]])
+    bal = jnp.array([0.05, 0.01, 0.015, 0.005 + 0.1])
+    front = planner.pareto_front(s)
+    picks = {int(_select("safe-random")(jax.random.key(k), s, front, bal)) for k in range(20)}
+    assert picks == {1, 2}
+    # Nothing safe: the best balance reward (row 3).
+    assert int(_select("safe-random")(jax.random.key(0), s, front, bal + 0.1)) == 3
+
+
+def test_y_excess_band():
+    """The belt midpoint reaches (p1_min + p2_min) / 2 .. (p1_max + p2_max) / 2 = -0.07 .. +0.07 m."""
+    s = jnp.zeros(5)
+    assert float(planner.y_excess(s, DEFAULT, 0.01)) == pytest.approx(-0.06, abs=1e-6)
+    assert float(planner.y_excess(s.at[geometry.Y].set(0.08), DEFAULT, 0.01)) == pytest.approx(0.02, abs=1e-6)
+    assert float(planner.y_excess(s.at[geometry.Y].set(-0.05), DEFAULT, 0.0)) == pytest.approx(
+        -0.02, abs=1e-6
+    )
 
 
 def test_action_set():

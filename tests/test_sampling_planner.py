@@ -26,13 +26,19 @@ WINDOW = prior.initial_window(S0)
 PLAN = sp.make_sampling_planner(CFG, OPTS)
 
 
-def test_rollout_sequence_matches_the_priors_held_action_rollout():
-    """A sequence of one repeated action is what prior.rollout predicts for that action held."""
+def test_rollout_sequence_feeds_predictions_back_step_by_step():
+    """prior.rollout_sequence (used for every rollout) equals predict applied step by step on the window
+    shifted by each prediction, with belt speeds from next_belt_speed."""
     model = _model("A")
-    a = jnp.array([0.12, -0.08, 0.0, 0.004], jnp.float32)
-    seq = sp.rollout_sequence(model, WINDOW, jnp.zeros(2), jnp.tile(a[None], (5, 1)))
-    held = prior.rollout(model, WINDOW, jnp.zeros(2), a, 5)
-    np.testing.assert_allclose(np.asarray(seq), np.asarray(held), atol=1e-6)
+    acts = jnp.array([[0.12, -0.08, 0.0, 0.004], [0.1, -0.1, 0.0, 0.0], [0.0, 0.0, -0.01, 0.0]], jnp.float32)
+    seq = np.asarray(prior.rollout_sequence(model, WINDOW, jnp.zeros(2), acts))
+    w, b = WINDOW, jnp.zeros(2)
+    for k, a in enumerate(acts):
+        s = prior.predict(model, w, b, a)
+        np.testing.assert_allclose(seq[k], np.asarray(s), atol=1e-6)
+        w, b = jnp.concatenate([w[1:], s[None]]), prior.next_belt_speed(model, b, a)
+    held = prior.rollout(model, WINDOW, jnp.zeros(2), acts[0], 2, brake_steps=1)
+    np.testing.assert_allclose(np.asarray(held[0]), seq[0], atol=1e-6)
 
 
 def test_cost_barrier_starts_at_safe_fraction_of_the_balance_limit():
