@@ -1,7 +1,8 @@
 """The `boxjax` command line.
 
     boxjax simulate --distribution D --policy naive --steps 300 [--backend native|mjx] [--plot f.png] [--json]
-    boxjax rotate --distribution C --estimator oracle|learned [--seed S] [--plot f.png] [--json]
+    boxjax rotate --distribution C --estimator oracle|learned [--planner sampling|paper] [--seed S]
+        [--plot f.png] [--json]
     boxjax demo [--distribution A|B|C|D|uniform] [--plot boxjax_demo.png] [--json]
     boxjax train-estimator [--boxes 2000] [--seed S] --out DIR [--json]
     boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE] [--json]
