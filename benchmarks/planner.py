@@ -1,8 +1,14 @@
-"""Planner latency: one MPC step (sample, predict with the physics prior, Pareto front, select).
+"""Planner latency: one MPC step with the physics prior, for both planners.
 
-Prints ONE JSON object: compile time, per-step latency for 50 actions (median and p99 over >= 200 calls
-after compile, each call waited on with block_until_ready), the latency for 4096 actions, and the
-backend / device. Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random]
+Prints ONE JSON object:
+  * the paper's planner (sample restricted actions, predict each with the prior, Pareto front, select):
+    compile time, per-step latency for 50 actions (median and p99 over >= 200 calls after compile, each
+    call waited on with block_until_ready), and the latency for 4096 actions;
+  * the predictive-sampling planner (the controller's default, `sampling_planner`): compile time and
+    per-step latency at its default size (64 sequences x 10 steps = 640 prior predictions), and at 4x
+    the sequences;
+  * the backend / device and the machine's load.
+Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random]
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from boxjax import calibrate, massdist, planner, prior
+from boxjax import sampling_planner as sp
 from boxjax.config import DEFAULT
 
 
@@ -65,7 +72,7 @@ def main() -> None:
     keys = jax.random.split(jax.random.key(0), calls)
 
     out = {
-        "benchmark": "planner step (random shooting + physics prior + Pareto selection)",
+        "benchmark": "planner step: paper (random shooting + Pareto) and predictive sampling, physics prior",
         "variant": args.variant,
         "prior_params": {k: v for k, v in vars(model.params).items()},
         "rule": args.rule,
@@ -86,6 +93,24 @@ def main() -> None:
     out["latency_4096_actions"] = _latency(
         plan4096, lambda i: (keys[i], model, window, speed, target), min(calls, 50)
     )
+
+    # The predictive-sampling planner ("slip" prior only: it plans full 4-d actions).
+    if args.variant == "slip":
+        for n in (sp.SamplingOptions().n_samples, 4 * sp.SamplingOptions().n_samples):
+            opts = sp.SamplingOptions(n_samples=n)
+            splan = sp.make_sampling_planner(cfg, opts)
+            nominal = sp.initial_nominal(cfg, opts, speed)
+            t0 = time.perf_counter()
+            jax.block_until_ready(splan(keys[0], model, window, speed, target, nominal))
+            out[f"sampling_{n}x{opts.horizon}"] = {
+                "compile_s": time.perf_counter() - t0,
+                "predictions_per_step": n * opts.horizon,
+                **_latency(
+                    splan,
+                    lambda i, nom=nominal: (keys[i], model, window, speed, target, nom),
+                    min(calls, 100),
+                ),
+            }
     dev = jax.devices()[0]
     out["backend"] = jax.default_backend()
     out["device"] = f"{dev.platform}:{getattr(dev, 'device_kind', '')}"

@@ -22,8 +22,13 @@ Score (lower is better), summed over the predicted states s_1..s_H (paper's obje
               w_barrier * relu(balance_error / limit - safe_fraction)^2 beyond safe_fraction of the limit;
   * workspace: the same barrier on the box's overhang beyond the belt ends (x), on its distance
               outside the band where the carriages can still centre the belts on it (y), and on each
-              belt's support: less than `support_margin` of a belt's width under the box, and the box
-              tips into the gap between the belts (`support_deficit`);
+              belt's support: less than `support_margin` of a belt's width under the box
+              (`support_deficit`);
+  * tipping:  the same barrier on how much closer than `tip_margin` the centre of mass comes to the edge
+              of the support polygon (`prior.stability_margin`). With the belts spread to their stops a
+              turned box rests on two corner patches; box C, whose centre of mass lies off that diagonal,
+              tipped into the gap in 5 of 20 episodes without this term (oracle, seeds 0-19, the support
+              barrier alone), in none with it;
   * effort:   w_effort * (dp / max_position_step)^2 (sideways moves drag the box; use them when needed).
 The best rollout's (R1, R2) at its worst state are reported in PlanInfo so the Pareto view of the paper
 stays available.
@@ -57,10 +62,13 @@ class SamplingOptions:
     w_yaw: float = 1.0
     w_balance: float = 0.5
     w_barrier: float = 1000.0
-    safe_fraction: float = 0.5  # of the balance limit, where the barrier starts
+    # Of the balance limit, where the barrier starts. 0.5 left box C (oracle) 18/20 (2 unbalanced: the
+    # carriages near their stops could not re-centre a drift that began above 2 cm); 0.4: 40/40.
+    safe_fraction: float = 0.4
     x_margin: float = 0.03  # m, keep the footprint this far inside the belt ends
     y_margin: float = 0.01  # m, keep the geometric centre this far inside the carriages' reach
     support_margin: float = 0.06  # m, each belt keeps at least this much of its width under the box
+    tip_margin: float = 0.03  # m, the centre of mass stays this far inside the support polygon
     w_effort: float = 0.01
 
     def __post_init__(self):
@@ -121,7 +129,7 @@ def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
     return margin - jnp.minimum(over1, over2)
 
 
-def rollout_cost(states, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
+def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
     """() cost of one predicted rollout (see module docstring)."""
     lim = cfg.task.balance_limit
     yaw_err = states[:, geometry.YAW] - target_yaw
@@ -130,7 +138,9 @@ def rollout_cost(states, actions, target_yaw, cfg: Config, o: SamplingOptions) -
     over_y = jax.vmap(lambda s: planner.y_excess(s, cfg, o.y_margin))(states)
     relu2 = lambda u: jnp.square(jnp.maximum(u, 0.0))  # noqa: E731
     support = jax.vmap(lambda s: support_deficit(s, cfg, o.support_margin))(states)
+    tip = o.tip_margin - jax.vmap(lambda s: prior.stability_margin(model, s))(states)
     barrier = relu2(bal - o.safe_fraction) + relu2(over_x / lim) + relu2(over_y / lim) + relu2(support / lim)
+    barrier = barrier + relu2(tip / lim)
     effort = jnp.sum(jnp.square(actions[:, 2:] / cfg.gripper.max_position_step), axis=-1)
     per_step = o.w_yaw * yaw_err**2 + o.w_balance * bal**2 + o.w_barrier * barrier + o.w_effort * effort
     return jnp.sum(per_step)
@@ -148,7 +158,9 @@ def plan(
     seqs = jnp.concatenate([nominal[None], nominal[None] + noise])
     seqs = clip_actions(seqs, cfg, o.speed_cap)
     states = jax.vmap(prior.rollout_sequence, in_axes=(None, None, None, 0))(model, window, belt_speed, seqs)
-    cost = jax.vmap(rollout_cost, in_axes=(0, 0, None, None, None))(states, seqs, target_yaw, cfg, o)
+    cost = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, None))(
+        model, states, seqs, target_yaw, cfg, o
+    )
     cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
     best = jnp.argmin(cost)
     st = states[best]

@@ -241,6 +241,61 @@ def test_contact_fractions_match_masks_at_yaw_zero():
     assert np.all((fr >= 0) & (fr <= 1))
 
 
+@pytest.mark.parametrize("name", ["C", "A", "uniform"])
+def test_normal_loads_balance_weight_and_moments_without_tension(name):
+    """Statics of the rigid box: the loads are >= 0, sum to M g and have no moment about the centre of mass
+    (box C's centre of mass lies 7 cm towards belt 2, so part of belt 1's contact lifts off)."""
+    model = prior.make_prior(massdist.voxel_masses(massdist.named(name, BOX), BOX), None, BOX, G)
+    for s in (REST, REST.at[geometry.YAW].set(0.6).at[geometry.P1].set(-0.16)):
+        c = prior.polygon_contacts(model, s)
+        n = np.asarray(prior.normal_loads(model, c))
+        assert np.all(n >= 0)
+        np.testing.assert_allclose(n.sum(), float(model.mass) * G.gravity, rtol=1e-4)
+        moment = (n[..., None] * np.asarray(c.offsets)).sum(axis=(0, 1))
+        np.testing.assert_allclose(moment, 0.0, atol=2e-3 * float(model.mass))
+
+
+def test_normal_loads_per_belt_match_mujoco_at_rest():
+    """Reference nobody here wrote: MuJoCo's contact forces on box C resting on the belts (averaged over
+    0.1 s after settling) split its weight 18.0 / 60.5 N between belt 1 and belt 2."""
+    import mujoco
+
+    from boxjax.sim import model as sim_model
+
+    dist = massdist.named("C", BOX)
+    m = sim_model.box_model(DEFAULT, dist)
+    d = mujoco.MjData(m)
+    d.qpos[:] = sim_model.initial_qpos(DEFAULT, m)
+    d.ctrl[sim_model.CARRIAGE1_P : sim_model.CARRIAGE2_P + 1] = G.belt_y0
+    mujoco.mj_step(m, d, nstep=100)
+    belt2 = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "belt2")
+    f6, sim = np.zeros(6), np.zeros(2)
+    for _ in range(50):
+        mujoco.mj_step(m, d)
+        for i in range(d.ncon):
+            mujoco.mj_contactForce(m, d, i, f6)
+            sim[int(belt2 in (d.contact[i].geom1, d.contact[i].geom2))] += f6[0] / 50
+    model = prior.make_prior(massdist.voxel_masses(dist, BOX), None, BOX, G)
+    pred = np.asarray(prior.normal_loads(model, prior.polygon_contacts(model, REST)).sum(axis=1))
+    np.testing.assert_allclose(pred, sim, atol=1.5)  # N, of 78.5 N
+
+
+def test_stability_margin_hand_computed():
+    """Uniform box at yaw 0 on belts at -+0.10 m: the support hull is the whole 0.40 x 0.30 footprint, the
+    centre of mass is 0.15 m from its nearest (long) edge. Belt 1 moved clear of the box: the box rests on
+    belt 2 alone (y in [0.05, 0.15]) and its centre of mass lies 0.05 m outside: it tips."""
+    model = prior.make_prior(_uniform(), None, BOX, G)
+    np.testing.assert_allclose(float(prior.stability_margin(model, REST)), 0.15, atol=1e-5)
+    off = REST.at[geometry.P1].set(-0.26)
+    np.testing.assert_allclose(float(prior.stability_margin(model, off)), -0.05, atol=1e-5)
+    # Box C: centre of mass (-5.2, +6.8) cm from the box centre, so 0.15 - 0.068 from the +y edge.
+    c = prior.make_prior(massdist.voxel_masses(massdist.named("C", BOX), BOX), None, BOX, G)
+    np.testing.assert_allclose(float(prior.stability_margin(c, REST)), 0.15 - float(c.com[1]), atol=1e-5)
+    # Turned, belts spread to their stops: two corner patches; the margin shrinks (here below 2 cm).
+    spread = jnp.array([-0.20, 0.20, 0.0, 0.0, 0.41])
+    assert float(prior.stability_margin(c, spread)) < 0.02
+
+
 def test_polygon_contacts():
     model = prior.make_prior(_uniform(), None, BOX, G)
     polygon_contacts = jax.jit(prior.polygon_contacts)

@@ -50,15 +50,35 @@ def test_cost_barrier_starts_at_safe_fraction_of_the_balance_limit():
 
     def cost_at(balance):
         s = S0.at[geometry.Y].set(balance)[None]
-        return float(sp.rollout_cost(s, acts, 0.0, CFG, o))
+        return float(sp.rollout_cost(_model(), s, acts, 0.0, CFG, o))
 
     assert cost_at(0.4 * lim) == 0.0
     np.testing.assert_allclose(cost_at(0.75 * lim), 0.25**2, rtol=1e-5)  # relu(0.75 - 0.5)^2
     # Beyond the belt ends (x) the same barrier applies, in units of the balance limit.
     over = S0.at[geometry.X].set(G.belt_length / 2 - CFG.box.half_size[0] + 0.01)[None]  # 1 cm over
     np.testing.assert_allclose(
-        float(sp.rollout_cost(over, acts, 0.0, CFG, o)), ((0.01 + o.x_margin) / lim) ** 2, rtol=1e-4
+        float(sp.rollout_cost(_model(), over, acts, 0.0, CFG, o)), ((0.01 + o.x_margin) / lim) ** 2, rtol=1e-4
     )
+
+
+def test_cost_tip_barrier_is_the_stability_margin_shortfall():
+    """Below `tip_margin` the cost grows with the square of the shortfall of `prior.stability_margin`
+    (in units of the balance limit); belts spread until box C's centre of mass nears the support's edge."""
+    lim = CFG.task.balance_limit
+    o = sp.SamplingOptions(
+        w_yaw=0.0, w_balance=0.0, w_effort=0.0, w_barrier=1.0, horizon=1, support_margin=-1.0, x_margin=-1.0
+    )
+    model = _model("C")
+    acts = jnp.zeros((1, 4))
+    spread = jnp.array([[-0.20, 0.20, 0.0, 0.0, 0.41]])
+    margin = float(prior.stability_margin(model, spread[0]))
+    assert margin < o.tip_margin
+    np.testing.assert_allclose(
+        float(sp.rollout_cost(model, spread, acts, 0.0, CFG, o)),
+        ((o.tip_margin - margin) / lim) ** 2,
+        rtol=1e-4,
+    )
+    assert float(sp.rollout_cost(model, S0[None], acts, 0.0, CFG, o)) == 0.0  # margin 8 cm at rest
 
 
 def test_plans_from_rest_turn_the_box_the_right_way_and_respect_limits():
