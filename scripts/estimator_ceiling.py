@@ -17,7 +17,11 @@ these numbers and H's (boxjax/data/estimator_report.json) is what a better explo
 still gain; the numbers themselves bound what any trajectory-based estimator can reach on this
 distribution.
 
-Run: python scripts/estimator_ceiling.py [--boxes 40000] [--epochs 60] [--seed 0] [--out FILE.json]
+`--com-noise-cm S` adds gaussian noise of S cm (per axis) to the centre of mass given to the estimator,
+in training and test alike: what an estimate of the centre of mass that good would allow.
+
+Run: python scripts/estimator_ceiling.py [--boxes 40000] [--epochs 60] [--seed 0] [--inputs rigid planar]
+     [--com-noise-cm 0] [--out FILE.json]
 Prints one JSON object (last line).
 """
 
@@ -48,7 +52,7 @@ def rigid_body_features(dists: massdist.MassDistribution, box) -> dict[str, np.n
     upper = jnp.stack([i[:, 0, 0], i[:, 1, 1], i[:, 2, 2], i[:, 0, 1], i[:, 0, 2], i[:, 1, 2]], axis=1)
     rigid = jnp.concatenate([props.mass[:, None], props.com, upper], axis=1)
     planar = jnp.concatenate([props.mass[:, None], props.com, i[:, 2, 2][:, None]], axis=1)
-    return {"rigid": np.asarray(rigid), "planar": np.asarray(planar)}
+    return {"rigid": np.array(rigid), "planar": np.array(planar)}
 
 
 def train_ceiling(x, occ, key, epochs: int, hidden=(512, 512, 512), batch: int = 256, lr: float = 1e-3):
@@ -111,10 +115,12 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--p-hazardous", type=float, default=0.25, help="as in the estimator's dataset")
+    ap.add_argument("--inputs", nargs="+", default=list(INPUTS), choices=list(INPUTS))
+    ap.add_argument("--com-noise-cm", type=float, default=0.0, help="noise on the centre of mass given")
     ap.add_argument("--out", default=None, help="also write the JSON here (atomically)")
     args = ap.parse_args()
-    if args.boxes < 1000 or args.epochs < 1:
-        ap.error("need --boxes >= 1000 and --epochs >= 1")
+    if args.boxes < 1000 or args.epochs < 1 or args.com_noise_cm < 0:
+        ap.error("need --boxes >= 1000, --epochs >= 1 and --com-noise-cm >= 0")
     t0 = time.perf_counter()
     box = DEFAULT.box
     n_val, n_test = args.boxes // 10, 2000
@@ -123,7 +129,10 @@ def main() -> None:
     sample = jax.jit(jax.vmap(lambda k: massdist.sample_mixed(k, box, args.p_hazardous)))
     dists = sample(jax.random.split(key_data, n))
     occ = np.asarray(dists.occupancy) > 0.5
-    feats = rigid_body_features(dists, box)
+    feats = {k: v for k, v in rigid_body_features(dists, box).items() if k in args.inputs}
+    noise = np.random.default_rng(args.seed).normal(0.0, args.com_noise_cm / 100, (n, 3))
+    for x in feats.values():
+        x[:, 1:4] += noise  # columns 1-3: the centre of mass in both feature sets
     true_hazard = np.asarray(jax.vmap(lambda d: massdist.is_hazardous(d, box))(dists))
     tr, va, te = slice(0, args.boxes), slice(args.boxes, args.boxes + n_val), slice(args.boxes + n_val, n)
     out = {
@@ -133,6 +142,7 @@ def main() -> None:
         "epochs": args.epochs,
         "seed": args.seed,
         "p_hazardous": args.p_hazardous,
+        "com_noise_cm": args.com_noise_cm,
         "test_hazardous_fraction": float(true_hazard[te].mean()),
     }
     for name, x in feats.items():
