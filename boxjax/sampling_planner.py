@@ -130,7 +130,8 @@ def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
 
 
 def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
-    """() cost of one predicted rollout (see module docstring)."""
+    """() cost of one predicted rollout (see module docstring); `model` (the prior's PriorModel) gives the
+    centre of mass and contacts for the tipping barrier."""
     lim = cfg.task.balance_limit
     yaw_err = states[:, geometry.YAW] - target_yaw
     bal = jax.vmap(geometry.balance_error)(states) / lim

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from boxjax import fileio, massdist, mlp
 from boxjax.config import DEFAULT
-from boxjax.estimator import hazard_precision_recall
+from boxjax.estimator import hazard_precision_recall, to_distribution
 
 INPUTS = {"rigid": "mass, centre of mass, inertia tensor", "planar": "mass, centre of mass, I_zz"}
 
@@ -98,8 +98,6 @@ def train_ceiling(x, occ, key, epochs: int, hidden=(512, 512, 512), batch: int =
 
 def scores(prob, occ, box, threshold):
     """Per-box IoU and hazard flags of thresholded probabilities (the estimator's fallback included)."""
-    from boxjax.estimator import to_distribution
-
     grid = tuple(box.grid)
     pred = jax.vmap(lambda p: to_distribution(p.reshape(grid), jnp.ones(()), threshold))(prob)
     ious = jax.vmap(massdist.iou)(pred.occupancy, jnp.asarray(occ))
