@@ -805,8 +805,10 @@ def estimate(model: EstimatorParams, traj, final) -> dict:
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _thresholded_metrics(box: BoxConfig, prob, pred_mass, occ, mass, occ_threshold, hazard_threshold):
-    """Per-box metrics of batched predictions; both thresholds are traced (no recompile per value)."""
+def thresholded_metrics(box: BoxConfig, prob, pred_mass, occ, mass, occ_threshold, hazard_threshold):
+    """Per-box metrics of batched predictions: prob (B, nx, ny, nz) occupancy probabilities, pred_mass (B,)
+    kg against the truth occ, mass. Returns {"iou", "mass_rel_error", "com_error_cm", "pred_hazard",
+    "true_hazard"}, each (B,). Both thresholds are traced (no recompile per value)."""
     pred = jax.vmap(to_distribution, in_axes=(0, 0, None))(prob, pred_mass, occ_threshold)
     true = MassDistribution(occ, mass)
     return {
@@ -830,7 +832,7 @@ def _predictions(model: EstimatorParams, dataset, chunk: int):
 
 def _per_box_metrics(model: EstimatorParams, predictions, occ_threshold: float, hazard_threshold: float):
     prob, pred_mass, occ, mass = predictions
-    out = _thresholded_metrics(
+    out = thresholded_metrics(
         model.box, prob, pred_mass, occ, mass, jnp.float32(occ_threshold), jnp.float32(hazard_threshold)
     )
     return {k: np.asarray(v) for k, v in out.items()}
@@ -865,8 +867,18 @@ def evaluate(model: EstimatorParams, dataset, threshold: float | None = None, ch
     }
 
 
-_GRID = tuple(round(0.05 * i, 2) for i in range(2, 19))  # 0.10 .. 0.90
-_HAZARD_GRID = tuple(round(0.01 * i, 2) for i in range(10, 100))  # 0.10 .. 0.99
+OCCUPANCY_THRESHOLDS = tuple(round(0.05 * i, 2) for i in range(2, 19))  # 0.10 .. 0.90
+HAZARD_THRESHOLDS = tuple(round(0.01 * i, 2) for i in range(10, 100))  # 0.10 .. 0.99
+
+
+def choose_hazard_threshold(curve, recall_target: float) -> float:
+    """The hazard threshold to use, from `curve` = [(threshold, precision, recall), ...] measured on
+    held-out boxes: among the thresholds whose recall reaches the target, the one with the highest
+    precision (ties: the lower threshold); if none reaches it, the one with the highest recall."""
+    ok = [c for c in curve if c[2] >= recall_target and not math.isnan(c[1])]
+    if ok:
+        return max(ok, key=lambda c: (c[1], -c[0]))[0]
+    return max(curve, key=lambda c: (c[2], c[1]))[0]
 
 
 def calibrate(
@@ -884,29 +896,23 @@ def calibrate(
     ious, haz_curve = [], []
     true_h = None
     predictions = _predictions(model, dataset, 1024)
-    for t in _GRID:
+    for t in OCCUPANCY_THRESHOLDS:
         m = _per_box_metrics(model, predictions, t, 0.5)
         true_h = m["true_hazard"]
         ious.append(float(np.median(m["iou"])))
-    for t in _HAZARD_GRID:
+    for t in HAZARD_THRESHOLDS:
         m = _per_box_metrics(model, predictions, 0.5, t)
         p, r = hazard_precision_recall(m["pred_hazard"], m["true_hazard"])
         haz_curve.append((t, float(p), float(r)))
-    occ_t = _GRID[int(np.argmax(ious))]
-    haz_t = 0.5
-    if np.any(true_h):
-        ok = [c for c in haz_curve if c[2] >= hazard_recall_target and not math.isnan(c[1])]
-        if ok:
-            haz_t = max(ok, key=lambda c: (c[1], -c[0]))[0]
-        else:
-            haz_t = max(haz_curve, key=lambda c: (c[2], c[1]))[0]
+    occ_t = OCCUPANCY_THRESHOLDS[int(np.argmax(ious))]
+    haz_t = choose_hazard_threshold(haz_curve, hazard_recall_target) if np.any(true_h) else 0.5
     info = {
         "occupancy_threshold": occ_t,
         "hazard_threshold": haz_t,
         "hazard_recall_target": hazard_recall_target,
         "boxes": int(len(true_h)),
         "hazardous_boxes": int(np.sum(true_h)),
-        "iou_median_by_threshold": dict(zip(_GRID, ious, strict=True)),
+        "iou_median_by_threshold": dict(zip(OCCUPANCY_THRESHOLDS, ious, strict=True)),
         "hazard_precision_recall_by_threshold": {t: (p, r) for t, p, r in haz_curve},
     }
     return dataclasses.replace(model, occupancy_threshold=occ_t, hazard_threshold=haz_t), info

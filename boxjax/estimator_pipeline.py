@@ -223,7 +223,7 @@ def hazard_operating_points(model: E.EstimatorParams, data, recalls=(0.9, 0.95, 
     gives the hazard_precision / hazard_recall reported beside it). {recall: precision or None}."""
     predictions = E._predictions(model, data, 1024)
     curve = []
-    for t in E._HAZARD_GRID:
+    for t in E.HAZARD_THRESHOLDS:
         m = E._per_box_metrics(model, predictions, model.occupancy_threshold, t)
         p, r = E.hazard_precision_recall(m["pred_hazard"], m["true_hazard"])
         curve.append((float(p), float(r)))

@@ -38,9 +38,9 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
+from boxjax import estimator as E
 from boxjax import fileio, massdist, mlp
 from boxjax.config import DEFAULT
-from boxjax.estimator import hazard_precision_recall, to_distribution
 
 INPUTS = {"rigid": "mass, centre of mass, inertia tensor", "planar": "mass, centre of mass, I_zz"}
 
@@ -96,13 +96,11 @@ def train_ceiling(x, occ, key, epochs: int, hidden=(512, 512, 512), batch: int =
     return predict
 
 
-def scores(prob, occ, box, threshold):
-    """Per-box IoU and hazard flags of thresholded probabilities (the estimator's fallback included)."""
-    grid = tuple(box.grid)
-    pred = jax.vmap(lambda p: to_distribution(p.reshape(grid), jnp.ones(()), threshold))(prob)
-    ious = jax.vmap(massdist.iou)(pred.occupancy, jnp.asarray(occ))
-    hazard = jax.vmap(lambda d: massdist.is_hazardous(d, box))(pred)
-    return np.asarray(ious), np.asarray(hazard)
+def scores(prob, occ, mass, box, occ_threshold, hazard_threshold=0.5) -> dict[str, np.ndarray]:
+    """Per-box metrics of flat (B, V) probabilities, as H is scored (`estimator.thresholded_metrics`)."""
+    prob = jnp.asarray(prob).reshape(len(occ), *box.grid)
+    m = E.thresholded_metrics(box, prob, mass, occ, mass, occ_threshold, hazard_threshold)
+    return {k: np.asarray(v) for k, v in m.items()}
 
 
 def main() -> None:
@@ -131,6 +129,7 @@ def main() -> None:
     noise = np.random.default_rng(args.seed).normal(0.0, args.com_noise_cm / 100, (n, 3))
     for x in feats.values():
         x[:, 1:4] += noise  # columns 1-3: the centre of mass in both feature sets
+    mass = np.asarray(dists.total_mass)
     true_hazard = np.asarray(jax.vmap(lambda d: massdist.is_hazardous(d, box))(dists))
     tr, va, te = slice(0, args.boxes), slice(args.boxes, args.boxes + n_val), slice(args.boxes + n_val, n)
     out = {
@@ -146,21 +145,20 @@ def main() -> None:
     for name, x in feats.items():
         predict = train_ceiling(x[tr], occ[tr], jax.random.fold_in(key_train, len(name)), args.epochs)
         p_val, p_test = predict(x[va]), predict(x[te])
-        thresholds = np.round(np.arange(0.1, 0.91, 0.05), 2)
-        best = max(thresholds, key=lambda t: np.median(scores(p_val, occ[va], box, float(t))[0]))
-        ious, _ = scores(p_test, occ[te], box, float(best))
-        # Hazard, chosen as `estimator.calibrate` does: among the thresholds whose validation recall
-        # reaches the target, the one with the highest precision; then scored on the test boxes.
-        recall_target = 0.98
+        # Both thresholds chosen on the validation boxes as `estimator.calibrate` does, then scored on
+        # the test boxes.
+        val = lambda o, h=0.5, p=p_val: scores(p, occ[va], mass[va], box, o, h)  # noqa: E731
+        best = max(E.OCCUPANCY_THRESHOLDS, key=lambda t: np.median(val(t)["iou"]))
         curve = []
-        for t in np.round(np.arange(0.10, 0.995, 0.01), 2):
-            _, hz = scores(p_val, occ[va], box, float(t))
-            p, r = hazard_precision_recall(hz, true_hazard[va])
-            curve.append((float(t), float(p), float(r)))
-        ok = [c for c in curve if c[2] >= recall_target and not np.isnan(c[1])]
-        chosen = max(ok, key=lambda c: (c[1], -c[0]))[0] if ok else max(curve, key=lambda c: (c[2], c[1]))[0]
-        _, hz = scores(p_test, occ[te], box, chosen)
-        prec, rec = hazard_precision_recall(hz, true_hazard[te])
+        for t in E.HAZARD_THRESHOLDS:
+            m = val(best, t)
+            curve.append(
+                (t, *(float(v) for v in E.hazard_precision_recall(m["pred_hazard"], m["true_hazard"])))
+            )
+        chosen = E.choose_hazard_threshold(curve, recall_target=0.98)
+        test = scores(p_test, occ[te], mass[te], box, best, chosen)
+        ious = test["iou"]
+        prec, rec = E.hazard_precision_recall(test["pred_hazard"], test["true_hazard"])
         out[name] = {
             "inputs": INPUTS[name],
             "occupancy_threshold": float(best),

@@ -396,3 +396,12 @@ def test_ensemble_averages_its_members(tmp_path):
     loaded = E.load(tmp_path / "ens.npz", expected_box_config=BOX)
     assert loaded.cfg.members == 2
     jax.tree.map(np.testing.assert_array_equal, E.predict_batch(loaded, traj, final), (prob, mass))
+
+
+def test_choose_hazard_threshold_hand_computed():
+    """Highest precision among thresholds reaching the recall target (ties: the lower threshold); when
+    none reaches it, the highest recall. NaN precision (nothing flagged) never wins."""
+    curve = [(0.1, float("nan"), 0.0), (0.2, 0.9, 0.97), (0.3, 0.8, 0.99), (0.4, 0.8, 1.0), (0.5, 0.6, 1.0)]
+    assert E.choose_hazard_threshold(curve, 0.98) == 0.3
+    assert E.choose_hazard_threshold(curve, 0.95) == 0.2
+    assert E.choose_hazard_threshold(curve[:2], 0.98) == 0.2
