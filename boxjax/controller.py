@@ -62,19 +62,24 @@ class EpisodeResult(NamedTuple):
 
 
 def hazard_explanation(
-    belief: massdist.MassDistribution, cfg: Config, hazardous: bool | None = None
+    belief: massdist.MassDistribution,
+    cfg: Config,
+    hazardous: bool | None = None,
+    probability: float | None = None,
 ) -> str | None:
     """None if the belief is safe to turn; else why not, in terms a person understands.
 
-    `hazardous` overrides the paper's rule on `belief` (a learned estimator's calibrated decision).
+    `hazardous` overrides the paper's rule on `belief` (a learned estimator's calibrated decision), and
+    `probability` is that estimator's hazard probability, quoted in the message when given.
     """
     if hazardous is None:
         hazardous = bool(massdist.is_hazardous(belief, cfg.box))
     if not hazardous:
         return None
+    judged = "" if probability is None else f", estimated probability {probability:.2f}"
     return (
-        "refusing to rotate: the estimated mass distribution is hazardous (paper §4.2: all mass in one outer "
-        "quarter of the box, over one belt or one end). Estimate: " + massdist.describe(belief, cfg.box)
+        f"refusing to rotate: the box is hazardous{judged} (paper §4.2: all mass in one outer quarter of "
+        "the box, over one belt or one end). Estimate: " + massdist.describe(belief, cfg.box)
     )
 
 
@@ -193,7 +198,7 @@ def run_episode(
     belief = massdist.validate(est["distribution"], cfg.box)
 
     # 3. refuse when hazardous
-    why = hazard_explanation(belief, cfg, bool(est["hazardous"]))
+    why = hazard_explanation(belief, cfg, bool(est["hazardous"]), est.get("hazard_prob"))
     plan_ms: list[float] = []
     if why is None and not bool(state.done):
         # 4. physics-prior MPC
@@ -257,6 +262,8 @@ def run_episode(
         summary["iou"] = float(massdist.iou(belief.occupancy, truth.occupancy))
         summary["mass_error_kg"] = float(belief.total_mass - truth.total_mass)
         summary["com_error_cm"] = float(com_error_cm(belief, truth, cfg.box))
+        if est.get("hazard_prob") is not None:
+            summary["hazard_prob"] = float(est["hazard_prob"])
     if not aborted and not s["done"]:
         summary["failed_reason"] = task.REASONS[task.STEP_CAP]
     return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))

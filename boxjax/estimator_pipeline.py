@@ -24,15 +24,20 @@ from boxjax import estimator as E
 from boxjax.config import DEFAULT, Config
 from boxjax.fileio import atomic_path
 
-# Chosen by measurement (2000 boxes, 600 fresh test boxes, the shipped exploration): an ensemble of 5 nets
-# of 900 -> 256 -> 256 -> 256 -> (256 | 1), 2.1e6 parameters in all (the paper's H has ~2e6), checkpoint
-# ~8.6 MB. Averaging members gave +0.03 median IoU and -0.2 cm centre-of-mass error over one net; a single
-# 1.1e6-parameter net (512 x 3) was no better than one 256 x 3 member. The soft centre-of-mass loss term
-# (com_weight = 1) cut the median COM error by ~0.4 cm at equal IoU. Each member stops after ~25-35
-# epochs: the information in the exploration, not the model or the data, limits H (6000 boxes gave about
-# the same accuracy as 2000).
+# Chosen by measurement (2000 boxes, 600 fresh test boxes, the exploration of the time): an ensemble of 5
+# nets of 900 -> 256 -> 256 -> 256 -> (256 | 1 | 1), 2.1e6 parameters in all (the paper's H has ~2e6),
+# checkpoint ~8.6 MB. Averaging members gave +0.03 median IoU and -0.2 cm centre-of-mass error over one
+# net; a single 1.1e6-parameter net (512 x 3) was no better than one 256 x 3 member. The soft
+# centre-of-mass loss term (com_weight = 1) cut the median COM error by ~0.4 cm at equal IoU.
+# More boxes help (1000 fresh test boxes, the previous exploration, no hazard head): 8000 boxes 0.611
+# median IoU / 1.59 cm / hazard precision 0.84 at recall 0.98; 32000 boxes 0.641 / 1.32 cm / 0.88. The
+# hazard head (hazard_weight = 1), same 32000 boxes: 0.634 / 1.36 cm / 0.93: a sharper hazard decision
+# than thresholding the occupancy, at the same IoU within noise. The shipped weights use 48000 boxes.
 DEFAULT_ESTIMATOR = E.EstimatorConfig(hidden=(256, 256, 256), members=5, com_weight=1.0, patience=25)
-HAZARD_RECALL_TARGET = 0.99  # on the validation split, for the calibrated hazard threshold
+# The hazard threshold is calibrated on the validation split for this recall: the operating point asked
+# for is recall >= 0.98; 0.985 leaves a margin for the recall's sampling noise on fresh boxes (a few
+# thousandths with the ~1900 hazardous validation boxes of a 48000-box run, ~1 % with a 2000-box run).
+HAZARD_RECALL_TARGET = 0.985
 SHIPPED_WEIGHTS = Path(__file__).parent / "data" / "estimator.npz"
 SHIPPED_REPORT = Path(__file__).parent / "data" / "estimator_report.json"
 METRIC_KEYS = (
@@ -219,8 +224,9 @@ def evaluate_estimator(
 
 def hazard_operating_points(model: E.EstimatorParams, data, recalls=(0.9, 0.95, 0.98)) -> dict:
     """For information: the best hazard precision reachable on `data` at each recall level, sweeping the
-    hazard threshold over 0.10..0.99 (an oracle choice of threshold; the model's own calibrated threshold
-    gives the hazard_precision / hazard_recall reported beside it). {recall: precision or None}."""
+    threshold on the hazard head's probability over 0.01..0.99 (an oracle choice of threshold; the model's
+    own calibrated threshold gives the hazard_precision / hazard_recall reported beside it).
+    {recall: precision or None}."""
     predictions = E._predictions(model, data, 1024)
     curve = []
     for t in E.HAZARD_THRESHOLDS:

@@ -15,19 +15,23 @@ Physics that the design follows (DESIGN.md, `boxjax.sim.model`):
     (the belt speeds, P1 and P2), so the phases below keep at least one belt slipping most of the time.
   * The height of the centre of mass shows only while the box accelerates: the inertial force at the
     centre of mass, mu * g at most, tilts the load between the belts (or front to back) by about
-    M a h / d. Phases that combine a sideways carriage move (the box slides sideways at ~mu g) with
-    opposite belt speeds (the rotation then depends on the load split) expose it.
+    M a h / d. Sideways carriage moves under the box (it slides at ~mu g) expose it.
+  * At yaw 0 the centre of mass along x enters only through the turn (the pressure centre along each
+    belt); once the box is turned by psi, the load split between the belts follows
+    x sin(psi) + y cos(psi), so the one-belt drives and carriage moves are made at the turned yaw.
   * Belt setpoints move by at most belt_accel_limit * control_dt = 0.03 m/s per step, so a vector held 3
     steps reaches a setpoint up to 0.09 m/s away; the table never asks for more (no clipping with the
     default config). Carriage steps are at most 1 cm per step.
 
 The sequence (v in m/s along belt travel +x; dp in m along y per step; "CCW" = yaw increasing, left belt
-+x and right belt -x). Measured effect on the named boxes (`describe_effect`, default config): uniform
-turns +10.8 deg and moves 1.5 cm, worst balance error 0.8 cm; A / B / C / D: +7.0 / +8.3 / +0.9 / -0.7 deg,
-worst balance error 0.8 / 1.0 / 1.4 / 1.1 cm. Over random boxes (`boxjax.dataset`, 600 boxes, 25 %
-drawn hazardous) the worst balance error during the phase has median 1.6 cm; 95 % of the non-hazardous
-boxes stay under 2.8 cm. Every carriage move is undone, so the belts end where they started
-(P1 = -0.10, P2 = +0.10 m), and at rest.
++x and right belt -x). It turns the box a little, probes it at the turned yaw, and turns it back. Measured
+effect on the named boxes (`describe_effect`, default config): uniform / A / B / C / D turn by up to
++10.5 / +6.7 / +7.4 / +1.3 / +0.1 deg and end at +3.7 / +2.2 / +2.2 / +0.8 / +0.0 deg, 1.5 / 2.5 / 2.5 /
+0.4 / 0.4 cm from where they started, worst balance error 0.5 / 0.9 / 0.9 / 1.0 / 1.1 cm. Over random boxes
+(`boxjax.dataset`, 1000 boxes, 27 % hazardous) the worst balance error during the phase has median 1.2
+cm; no non-hazardous box and 1 % of the hazardous ones cross the 4 cm limit (95 % of the non-hazardous
+stay under 2.2 cm). Every carriage move is undone, so the belts end where they started (P1 = -0.10,
+P2 = +0.10 m), and at rest.
 
  #    v1     v2     dp1     dp2    why
 ---  -----  -----  ------  ------  ------------------------------------------------------------------------
@@ -35,40 +39,41 @@ boxes stay under 2.8 cm. Every carriage move is undone, so the belts end where t
  2   +0.12  -0.12       0       0  steady opposite slip: the turn's centre (so the y drift per radian) follows
                                    the pressure centre along x (COM x), the x drift the load split between the
                                    belts (COM y); both belts lag by mu N_i / kv (mass)
- 3   +0.09  -0.09  +0.004  +0.004  keep turning while both carriages shift +y: the box slides sideways at ~mu
-                                   g and the inertial force at the COM moves load between the belts (COM
-                                   height), which bends the turn
- 4   +0.09  -0.09  -0.004  -0.004  the same shifting back: the opposite load transfer; carriages back at the
-                                   start
- 5       0      0       0       0  ramp both belts down: the box decelerates with them (transient)
- 6   +0.09      0       0       0  left belt alone: the box turns about the right belt if that one carries
+ 3   +0.09  -0.09       0       0  a slower turn: how the slip pattern changes with the belt speed
+ 4       0      0       0       0  ramp both belts down: the box decelerates with them (transient). From here
+                                   on the box is turned (uniform: ~10 deg), so the probes below load the belts
+                                   through COM x as well as COM y (x sin(yaw) + y cos(yaw) across the belts)
+ 5   +0.09      0       0       0  left belt alone: the box turns about the right belt if that one carries
                                    more load, or rides with the left belt if not (sign and size of N1 - N2);
                                    belt 1 lags by mu N1 / kv
- 7       0  +0.09       0       0  right belt alone (the left ramps down): the mirror test, N2 - N1 and mu N2
+ 6       0  +0.09       0       0  right belt alone (the left ramps down): the mirror test, N2 - N1 and mu N2
                                    / kv
- 8       0      0  +0.007       0  left carriage in by 2.1 cm (the right belt ramps down): drags the box +y
+ 7       0      0  +0.007       0  left carriage in by 2.1 cm (the right belt ramps down): drags the box +y
                                    only if N1 > N2; carriage 1 lags by mu N1 / kp (mass)
- 9       0      0  -0.007       0  left carriage back out: the same force reversed
-10       0      0       0  -0.007  right carriage in: drags the box -y only if N2 > N1; carriage 2 lags by mu
+ 8       0      0  -0.007       0  left carriage back out: the same force reversed
+ 9       0      0       0  -0.007  right carriage in: drags the box -y only if N2 > N1; carriage 2 lags by mu
                                    N2 / kp
-11       0      0       0  +0.007  right carriage back out
-12       0      0  +0.007  -0.007  squeeze (both in): the belt under more load pushes the box towards the
-                                   other (net mu (N1 - N2)); both carriage lags
-13       0      0  -0.007  +0.007  release
-14       0      0  +0.004  +0.004  both carriages shift +y under the resting box: it slides at ~mu g on both
+10       0      0       0  +0.007  right carriage back out
+11       0      0  +0.004  +0.004  both carriages shift +y under the resting box: it slides at ~mu g on both
                                    belts, so the two carriage lags add up to mu M g / kp (mass) and split by
-                                   the load transfer (COM height)
-15       0      0  -0.004  -0.004  back: the box ends at rest, the belts at their start
+                                   the load transfer (the height of the COM: the inertial force mu g M at the
+                                   COM tilts the load between the belts by about M a h / d)
+12       0      0  -0.004  -0.004  back
+13   -0.09  +0.09       0       0  turn back CW: the mirror of 1-2, so the drift per radian is seen with both
+                                   signs and the box returns towards its start yaw and centre
+14   -0.09  +0.09       0       0  steady CW slip
+15       0      0       0       0  ramp down: the box ends near its start pose, at rest
 
-Why this sequence: it was chosen by measurement among six candidates (the same 2000 training / 600 test
-boxes each, H trained the same way): variants with a faster or longer turn, or 3 cm single-carriage
-moves, gave H up to +0.03 median IoU and -0.2 cm centre-of-mass error but pushed the worst balance error
-of 3-18 % of the NON-hazardous boxes past the 4 cm limit during exploration; with this one 1.5 % of them
-cross it (boxes whose mass sits mostly over one belt), 95 % stay under 2.8 cm. About a quarter of the
-HAZARDOUS boxes cross it during exploration (the episode then ends as unbalanced). The centre of mass
-along x shows only as the y drift per radian of turn, i.e. as balance error, so that trade-off is
-physical. Training H on parts of a candidate showed every block contributing
-(turns, one-belt drives and carriage moves each alone reach 0.36-0.45 median IoU, all together ~0.53).
+Why this sequence: it was chosen by measurement among nine candidates, each scored by what a net can
+recover from it (the same 8000 training / 1000 test boxes; the mass, centre of mass and I_zz regressed
+directly) and by how many boxes it pushes past the 4 cm balance limit while exploring. The centre of
+mass is recovered to about 0.9 / 0.35 / 0.7 cm (median, x / y / z) by every candidate that turns, shifts
+and drags the box (a longer turn, an oscillating turn, a squeeze of both carriages, turns with sideways
+shifts: within 0.05 cm of each other); what sets them apart is safety. The previous sequence (turning
+while shifting the carriages, then probes at the final yaw, then squeezing the box between both
+carriages) pushed 1.6 % of the non-hazardous and 28 % of the hazardous boxes past the limit during
+exploration (mostly during the squeeze); this one 0 % and 1 %, for about 0.1 cm more centre-of-mass
+error of the trained H and the same IoU and hazard precision within their noise (README).
 
 `exploration_actions(cfg)` gives the (45, 4) commanded actions; `applied_actions(cfg)` what the simulator
 applies after the acceleration limit (the `actions` a rollout reports); `trajectory(...)` turns a rollout's
@@ -95,8 +100,7 @@ VECTORS = np.array(
     [
         [+0.09, -0.09, 0.000, 0.000],
         [+0.12, -0.12, 0.000, 0.000],
-        [+0.09, -0.09, +0.004, +0.004],
-        [+0.09, -0.09, -0.004, -0.004],
+        [+0.09, -0.09, 0.000, 0.000],
         [0.00, 0.00, 0.000, 0.000],
         [+0.09, 0.00, 0.000, 0.000],
         [0.00, +0.09, 0.000, 0.000],
@@ -104,10 +108,11 @@ VECTORS = np.array(
         [0.00, 0.00, -0.007, 0.000],
         [0.00, 0.00, 0.000, -0.007],
         [0.00, 0.00, 0.000, +0.007],
-        [0.00, 0.00, +0.007, -0.007],
-        [0.00, 0.00, -0.007, +0.007],
         [0.00, 0.00, +0.004, +0.004],
         [0.00, 0.00, -0.004, -0.004],
+        [-0.09, +0.09, 0.000, 0.000],
+        [-0.09, +0.09, 0.000, 0.000],
+        [0.00, 0.00, 0.000, 0.000],
     ],
     dtype=np.float64,
 )

@@ -48,3 +48,22 @@ def test_bad_input_exits_2(capsys, tmp_path):
     assert "not a boxjax checkpoint" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["simulate", "--distribution", "E"])
+
+
+def test_demo_refuses_D_with_the_learned_estimator(capsys):
+    assert main(["demo", "--distribution", "D", "--json", "--plot", ""]) == 0
+    res = _last_json(capsys)
+    assert res["aborted"] and not res["success"] and res["estimator"] == "learned"
+    assert res["steps"] == res["exploration_steps"] == 45 and res["truth_hazardous"]
+    assert res["hazard_prob"] > 0.5 and "probability" in res["abort_reason"]
+    for k in ("iou", "mass_error_kg", "com_error_cm"):
+        assert k in res
+
+
+def test_demo_turns_A_and_draws_the_figure(capsys, tmp_path):
+    png = tmp_path / "demo.png"
+    assert main(["demo", "--distribution", "A", "--json", "--plot", str(png)]) == 0
+    res = _last_json(capsys)
+    assert res["success"] and not res["aborted"] and res["max_balance_error_m"] < 0.04
+    assert res["hazard_prob"] < 0.5 and abs(res["mass_error_kg"]) < 0.5 and res["plot"] == str(png)
+    assert png.stat().st_size > 10_000

@@ -20,11 +20,15 @@ BOX = BoxConfig(grid=(4, 4, 2))  # small grid: 32 voxels
 T = 45
 
 
-def synthetic(seed: int, n: int, box: BoxConfig = BOX, learnable: bool = True) -> dict:
+def synthetic(
+    seed: int, n: int, box: BoxConfig = BOX, learnable: bool = True, hazardous_share: float = 0.0
+) -> dict:
     """Boxes whose occupancy (any non-empty union of the four xy quadrants, all layers) and mass are a
     deterministic function of the trajectory: each step's state change is a fixed linear map of
     (quadrant bits, standardised mass), plus 1e-4 noise. With learnable=False the targets are shuffled
-    against the trajectories, so nothing generalises (for early stopping)."""
+    against the trajectories, so nothing generalises (for early stopping). A share `hazardous_share` of
+    the boxes instead fills only the first x-slice of voxels (region U1, hazardous), marked in the
+    trajectory by a response of its own."""
     rng = np.random.default_rng(seed)
     nx, ny, nz = box.grid
     bits = rng.integers(0, 2, (n, 4))
@@ -39,6 +43,10 @@ def synthetic(seed: int, n: int, box: BoxConfig = BOX, learnable: bool = True) -
     ]
     for q, (sx, sy) in enumerate(quadrants):
         occ[:, sx, sy, :] = bits[:, q, None, None, None]
+    hazardous = rng.random(n) < hazardous_share
+    bits[hazardous] = 0
+    occ[hazardous] = 0.0
+    occ[hazardous, 0] = 1.0
     mass = rng.uniform(1, 10, n).astype(np.float32)
     fixed = np.random.default_rng(1234)  # the same "physics" and exploration actions for every dataset
     actions = fixed.uniform(-0.2, 0.2, (T, 4)).astype(np.float32)
@@ -48,6 +56,7 @@ def synthetic(seed: int, n: int, box: BoxConfig = BOX, learnable: bool = True) -
     if not learnable:
         p = rng.permutation(p)
     ds = np.einsum("tij,bj->bti", response, p) + rng.normal(0, 1e-4, (n, T, 5))
+    ds += hazardous[:, None, None] * fixed.normal(0, 0.01, (T, 5))[None]
     s0 = np.array([-0.1, 0.1, 0, 0, 0]) + rng.normal(0, 1e-3, (n, 5))
     s = s0[:, None] + np.concatenate([np.zeros((n, 1, 5)), np.cumsum(ds, 1)], 1)
     # Measured belt speeds: the commanded ones, slowed in proportion to the mass (as a belt servo would be).
@@ -111,7 +120,7 @@ def test_learns_synthetic_dataset(trained, evaluation):
     assert len(history["train_index"]) + len(history["val_index"]) == 300
     assert not set(history["train_index"]) & set(history["val_index"])
     n_in = T * E.N_STEP_FEATURES
-    assert E.mlp.n_params(model.net) == (n_in + 1) * 64 + 65 * 64 + 65 * BOX.n_voxels + 65
+    assert E.mlp.n_params(model.net) == (n_in + 1) * 64 + 65 * 64 + 65 * BOX.n_voxels + 65 + 65
 
 
 def test_train_deterministic_by_key():
@@ -166,13 +175,14 @@ def test_config_validation_and_dict_round_trip():
 def test_predict_checked_matches_predict_and_validates(trained):
     model, _ = trained
     data = synthetic(5, 3)
-    prob, mass = E.predict_checked(model, data["traj"][0], data["final"][0])
-    assert prob.shape == BOX.grid and mass.shape == ()
-    assert np.all((prob > 0) & (prob < 1)) and mass > 0
-    probs, masses = E.predict_checked(model, data["traj"], data["final"])
-    assert probs.shape == (3, *BOX.grid) and masses.shape == (3,)
+    prob, mass, hazard = E.predict_checked(model, data["traj"][0], data["final"][0])
+    assert prob.shape == BOX.grid and mass.shape == () and hazard.shape == ()
+    assert np.all((prob > 0) & (prob < 1)) and mass > 0 and 0 < hazard < 1
+    probs, masses, hazards = E.predict_checked(model, data["traj"], data["final"])
+    assert probs.shape == (3, *BOX.grid) and masses.shape == (3,) and hazards.shape == (3,)
     np.testing.assert_allclose(probs[0], prob, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(masses[0], mass, rtol=1e-5)
+    np.testing.assert_allclose(hazards[0], hazard, rtol=1e-5, atol=1e-6)
 
     with pytest.raises(ValueError, match="44 steps"):
         E.predict_checked(model, data["traj"][0, :44], data["final"][0])
@@ -355,7 +365,8 @@ def test_calibrate_thresholds_round_trip_and_estimate(trained, tmp_path):
     assert loaded.occupancy_threshold == calibrated.occupancy_threshold and loaded.hazard_threshold == 0.7
 
     out = E.estimate(loaded, held_out["traj"][0], held_out["final"][0])
-    assert set(out) == {"prob", "distribution", "total_mass", "hazardous"}
+    assert set(out) == {"prob", "distribution", "total_mass", "hazard_prob", "hazardous"}
+    assert out["hazardous"] == (out["hazard_prob"] > 0.7)
     np.testing.assert_array_equal(
         np.asarray(out["distribution"].occupancy), out["prob"] > loaded.occupancy_threshold
     )
@@ -366,14 +377,36 @@ def test_calibrate_thresholds_round_trip_and_estimate(trained, tmp_path):
         E.estimate(loaded, bad, held_out["final"][0])
 
 
-def test_predict_hazard_rule():
-    """Hazardous iff no voxel outside one region U1..U4 is more probable than the hazard threshold."""
+def test_occupancy_hazard_rule():
+    """Hazardous iff no voxel outside one region U1..U4 is more probable than the threshold."""
     box = BoxConfig()
-    model = E.EstimatorParams(net={}, norm=None, cfg=CFG, box=box, n_steps=T, hazard_threshold=0.6)
     prob = jnp.full(box.grid, 0.01).at[:, 6:, :].set(0.9)  # U4 (last quarter of the width) only
-    assert bool(E.predict_hazard(model, prob))
-    assert bool(E.predict_hazard(model, prob.at[3, 3, 0].set(0.55)))  # below the threshold: still U4
-    assert not bool(E.predict_hazard(model, prob.at[3, 3, 0].set(0.65)))  # a confident voxel outside
+    assert bool(E.occupancy_hazard(prob, 0.6, box))
+    assert bool(E.occupancy_hazard(prob.at[3, 3, 0].set(0.55), 0.6, box))  # below the threshold: still U4
+    assert not bool(E.occupancy_hazard(prob.at[3, 3, 0].set(0.65), 0.6, box))  # a confident voxel outside
+
+
+def test_predict_hazard_thresholds_the_head():
+    model = E.EstimatorParams(net={}, norm=None, cfg=CFG, box=BoxConfig(), n_steps=T, hazard_threshold=0.6)
+    np.testing.assert_array_equal(
+        E.predict_hazard(model, jnp.array([0.1, 0.59, 0.61, 0.99])), [False, False, True, True]
+    )
+
+
+def test_hazard_head_learns_and_calibrates():
+    """Boxes with all mass in U1 among quadrant boxes: the head separates them on held-out boxes, and
+    calibrate picks a threshold on its probability that reaches the recall target."""
+    cfg = dataclasses.replace(CFG, max_epochs=40, patience=40)
+    data = synthetic(11, 300, hazardous_share=0.3)
+    labels = np.asarray(E.hazard_labels(BOX, jnp.asarray(data["occupancy"])))
+    assert 0.2 < labels.mean() < 0.4  # the U1 boxes and only they are hazardous on this grid
+    model, history = E.train(jax.random.key(2), data, cfg, box=BOX, progress=False)
+    assert history["val_hazard_bce"][history["best_epoch"]] < history["val_hazard_bce"][0] / 5
+    held_out = synthetic(12, 200, hazardous_share=0.3)
+    model, info = E.calibrate(model, held_out, hazard_recall_target=0.99)
+    assert info["hazardous_boxes"] > 40
+    m = E.evaluate(model, held_out)
+    assert m["hazard_recall"] >= 0.99 and m["hazard_precision"] >= 0.95
 
 
 def test_ensemble_averages_its_members(tmp_path):
@@ -387,15 +420,16 @@ def test_ensemble_averages_its_members(tmp_path):
         for i in range(2)
     ]
     traj, final = jnp.asarray(data["traj"][:4]), jnp.asarray(data["final"][:4])
-    probs, masses = zip(*(E.predict_batch(m, traj, final) for m in one), strict=True)
-    prob, mass = E.predict_batch(model, traj, final)
+    probs, masses, hazards = zip(*(E.predict_batch(m, traj, final) for m in one), strict=True)
+    prob, mass, hazard = pred = E.predict_batch(model, traj, final)
     np.testing.assert_allclose(prob, (probs[0] + probs[1]) / 2, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(mass, (masses[0] + masses[1]) / 2, rtol=1e-5)
+    np.testing.assert_allclose(hazard, (hazards[0] + hazards[1]) / 2, rtol=1e-5, atol=1e-7)
     assert not np.allclose(probs[0], probs[1])  # the members differ
     E.save(tmp_path / "ens.npz", model)
     loaded = E.load(tmp_path / "ens.npz", expected_box_config=BOX)
     assert loaded.cfg.members == 2
-    jax.tree.map(np.testing.assert_array_equal, E.predict_batch(loaded, traj, final), (prob, mass))
+    jax.tree.map(np.testing.assert_array_equal, E.predict_batch(loaded, traj, final), pred)
 
 
 def test_choose_hazard_threshold_hand_computed():

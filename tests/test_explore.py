@@ -57,11 +57,13 @@ def test_turns_and_shifts_a_uniform_box_slightly_and_safely(named_rollout):
     bal = np.abs(s[..., geometry.Y] - 0.5 * (s[..., geometry.P1] + s[..., geometry.P2]))
     d = s[:, -1] - s[:, 0]
     u = NAMES.index("uniform")
-    assert 1.0 < np.degrees(d[u, geometry.YAW]) < 30.0  # a small counter-clockwise turn
+    yaw = np.degrees(s[u, :, geometry.YAW] - s[u, 0, geometry.YAW])
+    assert 5.0 < yaw.max() < 30.0  # a small counter-clockwise turn ...
+    assert 0.0 < yaw[-1] < 0.5 * yaw.max()  # ... mostly undone by the end
     assert np.hypot(d[u, geometry.X], d[u, geometry.Y]) < 0.05
     assert bal[u].max() < 0.02
-    for name in ("A", "B", "C"):  # typical boxes: well inside the 4 cm limit
-        assert bal[NAMES.index(name)].max() < 0.03, name
+    for name in ("A", "B", "C", "D"):  # typical boxes and the hazardous D: well inside the 4 cm limit
+        assert bal[NAMES.index(name)].max() < 0.02, name
     # The belts are back where they started.
     np.testing.assert_allclose(s[:, -1, :2], np.tile(CFG.gripper.belt_y0, (len(NAMES), 1)), atol=1e-3)
 
