@@ -28,7 +28,7 @@ The sequence (v in m/s along belt travel +x; dp in m along y per step; "CCW" = y
 effect on the named boxes (`describe_effect`, default config): uniform / A / B / C / D turn by up to
 +10.5 / +6.7 / +7.4 / +1.3 / +0.1 deg and end at +3.7 / +2.2 / +2.2 / +0.8 / +0.0 deg, 1.5 / 2.5 / 2.5 /
 0.4 / 0.4 cm from where they started, worst balance error 0.5 / 0.9 / 0.9 / 1.0 / 1.1 cm. Over random boxes
-(`boxjax.dataset`, 1000 boxes, 27 % hazardous) the worst balance error during the phase has median 1.2
+(`boxjax.dataset`, 1000 boxes, 27 % hazardous) the worst balance error during the phase has median 1.3
 cm; no non-hazardous box and 1 % of the hazardous ones cross the 4 cm limit (95 % of the non-hazardous
 stay under 2.2 cm). Every carriage move is undone, so the belts end where they started (P1 = -0.10,
 P2 = +0.10 m), and at rest.
