@@ -64,16 +64,19 @@ P2 = +0.10 m), and at rest.
 14   -0.09  +0.09       0       0  steady CW slip
 15       0      0       0       0  ramp down: the box ends near its start pose, at rest
 
-Why this sequence: it was chosen by measurement among nine candidates, each scored by what a net can
-recover from it (the same 8000 training / 1000 test boxes; the mass, centre of mass and I_zz regressed
-directly) and by how many boxes it pushes past the 4 cm balance limit while exploring. The centre of
-mass is recovered to about 0.9 / 0.35 / 0.7 cm (median, x / y / z) by every candidate that turns, shifts
-and drags the box (a longer turn, an oscillating turn, a squeeze of both carriages, turns with sideways
-shifts: within 0.05 cm of each other); what sets them apart is safety. The previous sequence (turning
-while shifting the carriages, then probes at the final yaw, then squeezing the box between both
-carriages) pushed 1.6 % of the non-hazardous and 28 % of the hazardous boxes past the limit during
-exploration (mostly during the squeeze); this one 0 % and 1 %, for about 0.1 cm more centre-of-mass
-error of the trained H and the same IoU and hazard precision within their noise (README).
+Why this sequence: it was chosen by measurement among candidates (`scripts/exploration_candidates.py`,
+results in `benchmarks/results_exploration_candidates.json`), each scored by what a net recovers from it
+(the same 8000 training / 1000 test boxes; mass, centre of mass and I_zz regressed directly) and by how
+many boxes it pushes past the 4 cm balance limit while exploring. Every candidate that turns, drags and
+shifts the box (a longer turn, an oscillating turn, turns with sideways shifts, with or without squeezing
+the box between both carriages) gives the centre of mass to 0.88-0.94 / 0.34-0.37 / 0.67-0.87 cm (median,
+x / y / z); what sets them apart is safety. The previous sequence (turning while shifting the carriages,
+probes at the final yaw, then squeezing the box between both carriages) pushed 1.6 % of the
+non-hazardous and 28 % of the hazardous boxes past the limit during exploration (mostly during the
+squeeze); this one 0 % and 1 %. H trained end to end on 16000 / 32000 boxes of each (1000 test boxes):
+median IoU 0.619 / 0.634 (previous) vs 0.614 / 0.637 (this one), hazard precision at recall 0.98
+0.89 / 0.93 vs 0.91 / 0.88, centre-of-mass error 1.49 / 1.36 vs 1.60 / 1.49 cm: the same IoU and hazard
+precision within their run-to-run spread, ~0.1 cm more centre-of-mass error.
 
 `exploration_actions(cfg)` gives the (45, 4) commanded actions; `applied_actions(cfg)` what the simulator
 applies after the acceleration limit (the `actions` a rollout reports); `trajectory(...)` turns a rollout's
