@@ -112,6 +112,7 @@ __all__ = [
     "mass_rel_error",
     "com_error_cm",
     "hazard_precision_recall",
+    "hazard_curve",
     "evaluate",
     "save",
     "load",
@@ -931,6 +932,20 @@ OCCUPANCY_THRESHOLDS = tuple(round(0.05 * i, 2) for i in range(2, 19))  # 0.10 .
 HAZARD_THRESHOLDS = tuple(round(0.01 * i, 2) for i in range(1, 100))  # 0.01 .. 0.99
 
 
+def hazard_curve(hazard_prob, true_hazard, thresholds=HAZARD_THRESHOLDS) -> list[tuple[float, ...]]:
+    """[(threshold, precision, recall), ...] of the decision hazard_prob > threshold against true_hazard
+    (both (B,)), for every threshold at once; precision / recall NaN where undefined, as in
+    `hazard_precision_recall`."""
+    t = np.asarray(thresholds, np.float64)[:, None]
+    pred = np.asarray(hazard_prob)[None, :] > t
+    true = np.asarray(true_hazard, bool)[None, :]
+    tp, n_pred, n_true = np.sum(pred & true, 1), np.sum(pred, 1), np.sum(true)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        precision = np.where(n_pred > 0, tp / n_pred, np.nan)
+        recall = np.where(n_true > 0, tp / n_true, np.nan)
+    return [(float(a), float(b), float(c)) for a, b, c in zip(t[:, 0], precision, recall, strict=True)]
+
+
 def choose_hazard_threshold(curve, recall_target: float) -> float:
     """The hazard threshold to use, from `curve` = [(threshold, precision, recall), ...] measured on
     held-out boxes: among the thresholds whose recall reaches the target, the one with the highest
@@ -947,24 +962,20 @@ def calibrate(
     """Choose the model's two decision thresholds on held-out boxes (never the training boxes).
 
     occupancy_threshold: the value in 0.10..0.90 (step 0.05) with the highest median IoU.
-    hazard_threshold: on the hazard head's probability, among 0.01..0.99 (step 0.01), the values whose
-    hazard recall on `dataset` is >= the
-    target, the one with the highest precision (ties: the lower threshold); if none reaches the target,
-    the one with the highest recall. Undefined when `dataset` holds no hazardous box: then 0.5 is kept.
+    hazard_threshold: on the hazard head's probability, among 0.01..0.99 (step 0.01, `hazard_curve`), the
+    values whose hazard recall on `dataset` is >= the target, the one with the highest precision (ties:
+    the lower threshold); if none reaches the target, the one with the highest recall. Undefined when
+    `dataset` holds no hazardous box: then 0.5 is kept.
 
     Returns (model with both thresholds set, a dict of what was chosen and the per-threshold curves).
     """
-    ious, haz_curve = [], []
-    true_h = None
+    ious = []
     predictions = _predictions(model, dataset, 1024)
     for t in OCCUPANCY_THRESHOLDS:
         m = _per_box_metrics(model, predictions, t, 0.5)
-        true_h = m["true_hazard"]
         ious.append(float(np.median(m["iou"])))
-    for t in HAZARD_THRESHOLDS:
-        m = _per_box_metrics(model, predictions, 0.5, t)
-        p, r = hazard_precision_recall(m["pred_hazard"], m["true_hazard"])
-        haz_curve.append((t, float(p), float(r)))
+    true_h = m["true_hazard"]
+    haz_curve = hazard_curve(predictions[0].hazard, true_h)
     occ_t = OCCUPANCY_THRESHOLDS[int(np.argmax(ious))]
     haz_t = choose_hazard_threshold(haz_curve, hazard_recall_target) if np.any(true_h) else 0.5
     info = {

@@ -26,7 +26,7 @@ from boxjax.fileio import atomic_path
 
 # Chosen by measurement (2000 boxes, 600 fresh test boxes, the exploration of the time): an ensemble of 5
 # nets of 900 -> 256 -> 256 -> 256 -> (256 | 1 | 1), 2.1e6 parameters in all (the paper's H has ~2e6),
-# checkpoint ~8.6 MB. Averaging members gave +0.03 median IoU and -0.2 cm centre-of-mass error over one
+# checkpoint ~8 MB. Averaging members gave +0.03 median IoU and -0.2 cm centre-of-mass error over one
 # net; a single 1.1e6-parameter net (512 x 3) was no better than one 256 x 3 member. The soft
 # centre-of-mass loss term (com_weight = 1) cut the median COM error by ~0.4 cm at equal IoU.
 # More boxes help (1000 fresh test boxes, the previous exploration, no hazard head): 8000 boxes 0.611
@@ -227,15 +227,11 @@ def hazard_operating_points(model: E.EstimatorParams, data, recalls=(0.9, 0.95, 
     threshold on the hazard head's probability over 0.01..0.99 (an oracle choice of threshold; the model's
     own calibrated threshold gives the hazard_precision / hazard_recall reported beside it).
     {recall: precision or None}."""
-    predictions = E._predictions(model, data, 1024)
-    curve = []
-    for t in E.HAZARD_THRESHOLDS:
-        m = E._per_box_metrics(model, predictions, model.occupancy_threshold, t)
-        p, r = E.hazard_precision_recall(m["pred_hazard"], m["true_hazard"])
-        curve.append((float(p), float(r)))
+    (_, _, hazard_prob), occ, _ = E._predictions(model, data, 1024)
+    curve = E.hazard_curve(hazard_prob, E.hazard_labels(model.box, occ))
     out = {}
     for target in recalls:
-        ok = [p for p, r in curve if r >= target and p == p]
+        ok = [p for _, p, r in curve if r >= target and p == p]
         out[str(target)] = max(ok) if ok else None
     return out
 

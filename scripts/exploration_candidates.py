@@ -94,17 +94,24 @@ def exploration(vectors):
         explore.VECTORS = saved
 
 
+_batched_features = jax.jit(jax.vmap(E.features))
+_batched_properties = jax.jit(jax.vmap(lambda d: massdist.mass_properties(d, DEFAULT.box)))
+
+
 def _features(d) -> np.ndarray:
-    f = jax.jit(jax.vmap(E.features))
     n = len(d["traj"])
     return np.concatenate(
-        [np.asarray(f(d["traj"][i : i + 4000], d["final"][i : i + 4000])) for i in range(0, n, 4000)]
+        [
+            np.asarray(_batched_features(d["traj"][i : i + 4000], d["final"][i : i + 4000]))
+            for i in range(0, n, 4000)
+        ]
     )
 
 
 def _targets(d) -> np.ndarray:
-    dists = massdist.MassDistribution(jnp.asarray(d["occupancy"]), jnp.asarray(d["total_mass"]))
-    p = jax.jit(jax.vmap(lambda x: massdist.mass_properties(x, DEFAULT.box)))(dists)
+    p = _batched_properties(
+        massdist.MassDistribution(jnp.asarray(d["occupancy"]), jnp.asarray(d["total_mass"]))
+    )
     return np.concatenate(
         [
             np.log(np.asarray(p.mass))[:, None],

@@ -432,6 +432,19 @@ def test_ensemble_averages_its_members(tmp_path):
     jax.tree.map(np.testing.assert_array_equal, E.predict_batch(loaded, traj, final), pred)
 
 
+def test_hazard_curve_matches_precision_recall_per_threshold():
+    prob = np.array([0.05, 0.2, 0.4, 0.6, 0.8, 0.95])
+    true = np.array([False, True, False, True, True, True])
+    curve = E.hazard_curve(prob, true, (0.1, 0.5, 0.9, 0.99))
+    assert [c[0] for c in curve] == [0.1, 0.5, 0.9, 0.99]
+    np.testing.assert_allclose([c[1:] for c in curve][:3], [(0.8, 1.0), (1.0, 0.75), (1.0, 0.25)])
+    assert math.isnan(curve[3][1]) and curve[3][2] == 0.0  # nothing flagged: precision undefined
+    for t, p, r in curve[:3]:
+        ref = E.hazard_precision_recall(jnp.asarray(prob > t), jnp.asarray(true))
+        np.testing.assert_allclose((p, r), np.asarray(ref, np.float64), rtol=1e-6)
+    assert all(math.isnan(c[2]) for c in E.hazard_curve(prob, np.zeros(6, bool)))  # no hazardous box
+
+
 def test_choose_hazard_threshold_hand_computed():
     """Highest precision among thresholds reaching the recall target (ties: the lower threshold); when
     none reaches it, the highest recall. NaN precision (nothing flagged) never wins."""
