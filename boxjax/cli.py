@@ -4,8 +4,9 @@
     boxjax rotate --distribution C --estimator oracle|learned [--planner sampling|paper] [--seed S]
         [--plot f.png] [--json]
     boxjax demo [--distribution A|B|C|D|uniform] [--plot boxjax_demo.png] [--json]
-    boxjax train-estimator [--boxes 2000] [--seed S] --out DIR [--json]
-    boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE] [--json]
+    boxjax train-estimator [--boxes 2000] [--seed S] --out DIR [--backend native|mjx] [--chunk 500] [--json]
+    boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE] [--backend native|mjx] [--chunk 500]
+        [--json]
     boxjax calibrate [--transitions 400] [--seed S] --out FILE [--plot FILE.png] [--json]
 
 With --json the last line printed is one JSON object (the summary); everything else goes before it.
@@ -126,13 +127,27 @@ def cmd_rotate(args) -> dict:
     return summary
 
 
+def _check_chunk(chunk: int) -> None:
+    if chunk < 1:
+        raise ValueError(f"--chunk must be >= 1 box per batched rollout, got {chunk}")
+
+
 def cmd_train_estimator(args) -> dict:
     from boxjax import estimator_pipeline as P
     from boxjax.config import DEFAULT
 
     if args.boxes < 10:
         raise ValueError(f"--boxes must be >= 10 (train and validation splits), got {args.boxes}")
-    report = P.train_estimator(args.seed, args.boxes, args.out, DEFAULT, progress=not args.json)
+    _check_chunk(args.chunk)
+    report = P.train_estimator(
+        args.seed,
+        args.boxes,
+        args.out,
+        DEFAULT,
+        backend=args.backend,
+        chunk=args.chunk,
+        progress=not args.json,
+    )
     return {"command": "train-estimator", "boxes": args.boxes, "seed": args.seed, "out": args.out, **report}
 
 
@@ -142,7 +157,16 @@ def cmd_estimator_eval(args) -> dict:
 
     if args.boxes < 1:
         raise ValueError(f"--boxes must be >= 1, got {args.boxes}")
-    res = P.evaluate_estimator(args.seed, args.boxes, args.weights, DEFAULT, progress=not args.json)
+    _check_chunk(args.chunk)
+    res = P.evaluate_estimator(
+        args.seed,
+        args.boxes,
+        args.weights,
+        DEFAULT,
+        backend=args.backend,
+        chunk=args.chunk,
+        progress=not args.json,
+    )
     return {"command": "estimator-eval", **res}
 
 
@@ -280,6 +304,23 @@ def cmd_demo(args) -> dict:
     return summary
 
 
+def _simulation_args(p: argparse.ArgumentParser) -> None:
+    from boxjax.sim import BACKENDS
+
+    p.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="native",
+        help="simulate the boxes with native MuJoCo (mujoco.rollout, fastest on CPU) or MJX (accelerators)",
+    )
+    p.add_argument(
+        "--chunk",
+        type=int,
+        default=500,
+        help="boxes per batched rollout call (memory bound; thousands for MJX on a GPU)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     from boxjax.massdist import NAMES
     from boxjax.sim import BACKENDS
@@ -327,6 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--boxes", type=int, default=2000)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--out", required=True, help="directory for dataset.npz, estimator.npz, report.json")
+    _simulation_args(t)
     t.add_argument("--json", action="store_true")
     t.set_defaults(func=cmd_train_estimator)
 
@@ -334,6 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--boxes", type=int, default=500)
     e.add_argument("--seed", type=int, default=1)
     e.add_argument("--weights", help="checkpoint (default: the one shipped with boxjax)")
+    _simulation_args(e)
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_estimator_eval)
 

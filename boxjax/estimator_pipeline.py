@@ -44,8 +44,13 @@ HAZARD_RECALL_TARGET = 0.985
 SHIPPED_WEIGHTS = Path(__file__).parent / "data" / "estimator.npz"
 SHIPPED_REPORT = Path(__file__).parent / "data" / "estimator_report.json"
 METRIC_KEYS = (
-    "iou_median", "iou_mean", "mass_rel_error_median", "com_error_cm_median", "hazard_precision",
-    "hazard_recall", "boxes",
+    "iou_median",
+    "iou_mean",
+    "mass_rel_error_median",
+    "com_error_cm_median",
+    "hazard_precision",
+    "hazard_recall",
+    "boxes",
 )
 
 
@@ -82,6 +87,7 @@ def train_estimator(
     est_cfg: E.EstimatorConfig = DEFAULT_ESTIMATOR,
     p_hazardous: float = ds.P_HAZARDOUS,
     backend: str = "native",
+    chunk: int = 500,
     progress: bool = True,
     weights_name: str = "estimator.npz",
 ) -> dict:
@@ -95,6 +101,8 @@ def train_estimator(
       est_cfg: size and training of H.
       p_hazardous: share of boxes drawn hazardous (`boxjax.dataset`).
       backend: "native" or "mjx" simulation.
+      chunk: boxes per batched rollout call (`boxjax.dataset.generate`; thousands for MJX on an
+        accelerator, where larger batches fill the device).
     Returns:
       the report (also written to out_dir/report.json): seed, paths, timings (data_s, train_s, total_s),
       dataset summary, training summary, calibration, and the validation-split metrics (METRIC_KEYS...).
@@ -106,7 +114,9 @@ def train_estimator(
     out.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
-    data = ds.generate(key_data, n_boxes, cfg, p_hazardous=p_hazardous, backend=backend, progress=progress)
+    data = ds.generate(
+        key_data, n_boxes, cfg, p_hazardous=p_hazardous, backend=backend, progress=progress, chunk=chunk
+    )
     data_s = time.perf_counter() - t0
     meta = ds.make_meta(cfg, seed, p_hazardous, backend, key=_key_record(key), seconds=data_s)
     ds.save(out / "dataset.npz", data, meta)
@@ -151,8 +161,16 @@ def train_estimator(
             "parameters": E.mlp.n_params(model.net),
             "estimator_config": est_cfg.to_dict(),
         },
-        "calibration": {k: calibration[k] for k in ("occupancy_threshold", "hazard_threshold",
-                                                     "hazard_recall_target", "boxes", "hazardous_boxes")},
+        "calibration": {
+            k: calibration[k]
+            for k in (
+                "occupancy_threshold",
+                "hazard_threshold",
+                "hazard_recall_target",
+                "boxes",
+                "hazardous_boxes",
+            )
+        },
         "validation": val_metrics,
     }
     report = _json_safe(report)
@@ -184,6 +202,7 @@ def evaluate_estimator(
     *,
     p_hazardous: float = ds.P_HAZARDOUS,
     backend: str = "native",
+    chunk: int = 500,
     progress: bool = True,
 ) -> dict:
     """Accuracy of H on `n_boxes` fresh random boxes (the same box prior as training: hazardous with
@@ -193,6 +212,7 @@ def evaluate_estimator(
       key: int seed or PRNG key. The boxes come from `fold_in(key, 1)`, a stream that
         `train_estimator` never uses, so the same seed never re-draws training boxes.
       weights_path: a checkpoint (default: the shipped weights).
+      backend, chunk: how the boxes are simulated (as for `train_estimator`).
     Returns:
       dict with iou_median, iou_mean, mass_rel_error_median, com_error_cm_median, hazard_precision,
       hazard_recall (None where undefined), boxes, plus mass_rel_error_mean, com_error_cm_mean,
@@ -206,8 +226,15 @@ def evaluate_estimator(
     model = E.load(path, expected_box_config=cfg.box)
     _check_exploration(model, cfg, path)
     t0 = time.perf_counter()
-    data = ds.generate(jax.random.fold_in(key, 1), n_boxes, cfg, p_hazardous=p_hazardous, backend=backend,
-                       progress=progress)
+    data = ds.generate(
+        jax.random.fold_in(key, 1),
+        n_boxes,
+        cfg,
+        p_hazardous=p_hazardous,
+        backend=backend,
+        progress=progress,
+        chunk=chunk,
+    )
     sim_s = time.perf_counter() - t0
     metrics = E.evaluate(model, data)
     result = {
@@ -252,8 +279,9 @@ def _check_exploration(model: E.EstimatorParams, cfg: Config, path) -> None:
         )
 
 
-def ship_estimator(run_dir: str | os.PathLike, key=1, n_eval_boxes: int = 500, cfg: Config = DEFAULT,
-                   progress: bool = True) -> dict:
+def ship_estimator(
+    run_dir: str | os.PathLike, key=1, n_eval_boxes: int = 500, cfg: Config = DEFAULT, progress: bool = True
+) -> dict:
     """Make the checkpoint of a `train_estimator` run the shipped one: copy run_dir/estimator.npz to
     boxjax/data/estimator.npz and write boxjax/data/estimator_report.json = {"training": the run's
     report.json, "heldout": evaluate_estimator(key, n_eval_boxes) of the copied weights}. That report is
