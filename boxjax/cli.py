@@ -317,7 +317,7 @@ def _simulation_args(p: argparse.ArgumentParser) -> None:
         "--chunk",
         type=int,
         default=500,
-        help="boxes per batched rollout call (memory bound; thousands for MJX on a GPU)",
+        help="boxes per batched rollout call (bounds memory; larger batches fill an accelerator under MJX)",
     )
 
 
