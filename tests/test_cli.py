@@ -90,8 +90,8 @@ def test_estimator_commands_pass_backend_and_chunk(capsys, monkeypatch, tmp_path
 
 
 def test_estimator_eval_on_mjx(capsys):
-    """The accelerator path end to end on the CPU: 4 boxes simulated with MJX in chunks of 2 (~15 s, most
-    of it compiling the exploration rollout)."""
+    """The accelerator path end to end on the CPU: 4 boxes simulated with MJX in chunks of 2 (16 s on the
+    2-core CPU)."""
     assert main(["estimator-eval", "--boxes", "4", "--backend", "mjx", "--chunk", "2", "--json"]) == 0
     res = _last_json(capsys)
     assert res["boxes"] == 4 and 0 <= res["iou_median"] <= 1 and res["mass_rel_error_median"] < 0.5
