@@ -127,9 +127,11 @@ def cmd_rotate(args) -> dict:
     return summary
 
 
-def _check_chunk(chunk: int) -> None:
-    if chunk < 1:
-        raise ValueError(f"--chunk must be >= 1 box per batched rollout, got {chunk}")
+def _simulation(args) -> dict:
+    """The --backend / --chunk keywords of the estimator pipeline, checked."""
+    if args.chunk < 1:
+        raise ValueError(f"--chunk must be >= 1 box per batched rollout, got {args.chunk}")
+    return {"backend": args.backend, "chunk": args.chunk, "progress": not args.json}
 
 
 def cmd_train_estimator(args) -> dict:
@@ -138,16 +140,7 @@ def cmd_train_estimator(args) -> dict:
 
     if args.boxes < 10:
         raise ValueError(f"--boxes must be >= 10 (train and validation splits), got {args.boxes}")
-    _check_chunk(args.chunk)
-    report = P.train_estimator(
-        args.seed,
-        args.boxes,
-        args.out,
-        DEFAULT,
-        backend=args.backend,
-        chunk=args.chunk,
-        progress=not args.json,
-    )
+    report = P.train_estimator(args.seed, args.boxes, args.out, DEFAULT, **_simulation(args))
     return {"command": "train-estimator", "boxes": args.boxes, "seed": args.seed, "out": args.out, **report}
 
 
@@ -157,16 +150,7 @@ def cmd_estimator_eval(args) -> dict:
 
     if args.boxes < 1:
         raise ValueError(f"--boxes must be >= 1, got {args.boxes}")
-    _check_chunk(args.chunk)
-    res = P.evaluate_estimator(
-        args.seed,
-        args.boxes,
-        args.weights,
-        DEFAULT,
-        backend=args.backend,
-        chunk=args.chunk,
-        progress=not args.json,
-    )
+    res = P.evaluate_estimator(args.seed, args.boxes, args.weights, DEFAULT, **_simulation(args))
     return {"command": "estimator-eval", **res}
 
 

@@ -101,8 +101,8 @@ def train_estimator(
       est_cfg: size and training of H.
       p_hazardous: share of boxes drawn hazardous (`boxjax.dataset`).
       backend: "native" or "mjx" simulation.
-      chunk: boxes per batched rollout call (`boxjax.dataset.generate`; thousands for MJX on an
-        accelerator, where larger batches fill the device).
+      chunk: boxes per batched rollout call (`boxjax.dataset.generate`; bounds memory, and larger
+        batches fill an accelerator under MJX).
     Returns:
       the report (also written to out_dir/report.json): seed, paths, timings (data_s, train_s, total_s),
       dataset summary, training summary, calibration, and the validation-split metrics (METRIC_KEYS...).
