@@ -406,6 +406,93 @@ def sample_mixed(
     return jax.tree.map(lambda a, b: jnp.where(pick, a, b), h, s)
 
 
+# Item samplers: a few small cuboid items instead of gaussian blobs (a box family H was not trained on).
+_ITEM_MAX = 3  # at most this many items per box
+_ITEM_SIZE_MAX = 2  # voxels per axis of one item (1 or 2)
+_ITEM_VOXEL_BUDGET = 16  # occupied voxels in all, at most
+
+
+def _n_item_uniforms() -> int:
+    """U(0, 1) numbers one item draw consumes: item count, 6 per item (3 sizes, 3 offsets), mass, region."""
+    return 1 + 6 * _ITEM_MAX + 1 + 1
+
+
+def _index_ranges(box: BoxConfig) -> np.ndarray:
+    """(5, 3, 2) int [lo, hi) voxel-index ranges per axis of U1..U4 and (last) the whole box."""
+    nx, ny, nz = box.grid
+    qx, qy = nx // 4, ny // 4
+    whole = [[0, nx], [0, ny], [0, nz]]
+    out = np.array([whole] * 5, np.int32)
+    out[0, 0] = (0, qx)  # U1
+    out[1, 0] = (nx - qx, nx)  # U2
+    out[2, 1] = (0, qy)  # U3
+    out[3, 1] = (ny - qy, ny)  # U4
+    return out
+
+
+def _items_from_uniforms(u, box: BoxConfig, region) -> MassDistribution:
+    """1..3 cuboid items inside index ranges `region` (0..3: U1..U4, 4: the whole box), from (n,) uniforms.
+
+    Items are placed independently (they may overlap); items beyond the voxel budget are dropped, last first.
+    """
+    ranges = jnp.asarray(_index_ranges(box))[region]  # (3, 2) [lo, hi) per axis
+    lo, hi = ranges[:, 0], ranges[:, 1]
+    u_count, u_items, u_mass = u[0], u[1 : 1 + 6 * _ITEM_MAX].reshape(_ITEM_MAX, 6), u[1 + 6 * _ITEM_MAX]
+    # Number of items ~ U{1, 2, 3}.
+    n = jnp.minimum(jnp.floor(u_count * _ITEM_MAX).astype(jnp.int32) + 1, _ITEM_MAX)
+    # Item size per axis ~ U{1, 2} voxels (5-10 cm along x, 3.75-7.5 cm along y and z with the default
+    # grid), capped at the range's extent; lower corner ~ U{lo, ..., hi - size} per axis (the item fits).
+    extent = hi - lo
+    size = jnp.minimum(jnp.floor(u_items[:, :3] * _ITEM_SIZE_MAX).astype(jnp.int32) + 1, _ITEM_SIZE_MAX)
+    size = jnp.minimum(size, extent)
+    start = lo + jnp.minimum(jnp.floor(u_items[:, 3:] * (extent - size + 1)).astype(jnp.int32), extent - size)
+    idx = [jnp.arange(g) for g in box.grid]
+
+    def item_occ(s, z):  # (3,), (3,) -> (nx, ny, nz) bool
+        ax = [(a >= z[d]) & (a < z[d] + s[d]) for d, a in enumerate(idx)]
+        return ax[0][:, None, None] & ax[1][None, :, None] & ax[2][None, None, :]
+
+    items = jax.vmap(item_occ)(size, start) & (jnp.arange(_ITEM_MAX) < n)[:, None, None, None]
+    unions = jnp.cumsum(items.astype(jnp.int32), axis=0) > 0  # (3, ...) union of the first k + 1 items
+    counts = jnp.sum(unions, axis=(1, 2, 3))
+    # The largest prefix of items within the budget (the first item alone is at most 8 voxels).
+    k = jnp.sum(counts <= _ITEM_VOXEL_BUDGET) - 1
+    occ = unions[k]
+    # Total mass ~ U(mass_range) kg, shared equally by the occupied voxels.
+    total_mass = _lerp(u_mass, *box.mass_range)
+    return MassDistribution(occ.astype(jnp.float32), total_mass.astype(jnp.float32))
+
+
+def sample_items_hazardous(key: jax.Array, box: BoxConfig = DEFAULT.box) -> MassDistribution:
+    """A random hazardous box holding a few small items, all inside one outer quarter (paper §4.2).
+
+    Random quantities (all independent, one ``jax.random.uniform`` call):
+      * region ~ U{U1, U2, U3, U4};
+      * number of items ~ U{1, 2, 3};
+      * each item an axis-aligned cuboid of voxels, size per axis ~ U{1, 2} voxels (so 1..8 voxels each),
+        its lower corner ~ U{...} over the positions where it fits inside the region (items may overlap);
+      * total mass ~ U(box.mass_range), shared equally by the occupied voxels.
+    The union holds 1..16 voxels: items beyond 16 occupied voxels are dropped, last first. Every occupied
+    voxel lies inside the region, so `is_hazardous` is always true. Pure jnp, jittable, vmap over keys with
+    ``jax.vmap(functools.partial(sample_items_hazardous, box=box))``.
+    """
+    u = jax.random.uniform(key, (_n_item_uniforms(),), jnp.float32)
+    region = jnp.minimum(jnp.floor(u[-1] * 4).astype(jnp.int32), 3)
+    return _items_from_uniforms(u[:-1], box, region)
+
+
+def sample_items(key: jax.Array, box: BoxConfig = DEFAULT.box) -> MassDistribution:
+    """A random box holding a few small items anywhere (safe or hazardous: a family for testing
+    generalisation).
+
+    Random quantities as in `sample_items_hazardous`, except that each item's lower corner ~ U{...} over
+    the positions where it fits inside the whole box (no region is drawn). Hazardous (`is_hazardous`) only
+    when the items happen to fall inside one outer quarter. Pure jnp, jittable.
+    """
+    u = jax.random.uniform(key, (_n_item_uniforms(),), jnp.float32)
+    return _items_from_uniforms(u[:-1], box, 4)
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Named distributions (paper §4.1). Fixed parameters: box-frame metres; never derived from a key.
 

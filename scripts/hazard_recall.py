@@ -1,0 +1,189 @@
+"""Hazard recall and false aborts of H's hazard decisions (issue 11 item 4), exploration + H only.
+
+Boxes (one seed; every family from its own key):
+  * gaussian: `massdist.sample_hazardous` (the hazardous family H was trained on);
+  * items: `massdist.sample_items_hazardous` (1-3 small items, 1-16 voxels, inside one outer quarter; H never
+    saw such boxes);
+  * safe: `massdist.sample` with the hazardous draws rejected (paper §4.3's label-safe boxes);
+  * items_any (optional, --items-any N): `massdist.sample_items`, small items anywhere (hazardous or not):
+    recall on its hazardous boxes, false aborts on its label-safe ones.
+Each box runs the fixed 45-step exploration open loop (`dataset.simulate`, native MuJoCo on all threads);
+H's ensemble gives its evidence (`boxjax.hazard.evidence_batch`) and each rule decides: "head" (H's hazard
+head alone, its calibrated threshold), "physics_only" and "physics" (physics or head; the controller's
+default). Diagnostics in physical terms: H's centre-of-mass error on each family against the depth of the
+true centre of mass inside its region, and what a rule on the TRUE centre of mass would abort.
+
+  .venv/bin/python scripts/hazard_recall.py --seed 0 --hazardous 100 --safe 300 \
+      [--weights FILE] [--items-any 300]
+
+Prints one JSON object (last line).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import dataset as ds
+from boxjax import estimator as E
+from boxjax import hazard, massdist
+from boxjax.config import DEFAULT
+from boxjax.estimator_pipeline import _check_exploration, default_estimator
+
+
+def _draw(sampler, key, n, box):
+    return jax.jit(jax.vmap(functools.partial(sampler, box=box)))(jax.random.split(key, n))
+
+
+def _safe(key, n, box):
+    """n label-safe `massdist.sample` draws (hazardous ones rejected), in vmapped rounds."""
+    parts, got, i = [], 0, 0
+    while got < n:
+        d = _draw(massdist.sample, jax.random.fold_in(key, i), 2 * n, box)
+        keep = ~np.asarray(jax.vmap(massdist.is_hazardous, in_axes=(0, None))(d, box))
+        parts.append(jax.tree.map(lambda a, keep=keep: np.asarray(a)[keep], d))
+        got += int(keep.sum())
+        i += 1
+    return jax.tree.map(lambda *a: np.concatenate(a)[:n], *parts)
+
+
+def _rate(x) -> float | None:
+    x = np.asarray(x, bool)
+    return float(x.mean()) if x.size else None
+
+
+def _pct(x, qs=(50, 95, 100)) -> dict:
+    x = np.asarray(x, np.float64)
+    return {f"p{q}": round(float(np.percentile(x, q)), 2) for q in qs} if x.size else {}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--hazardous", type=int, default=100, help="hazardous boxes of EACH family")
+    ap.add_argument("--safe", type=int, default=300, help="label-safe boxes")
+    ap.add_argument("--items-any", type=int, default=0, help="boxes of massdist.sample_items (any label)")
+    ap.add_argument("--weights", help="estimator checkpoint (default: the shipped H)")
+    ap.add_argument("--show-misses", type=int, default=3, help="explanations of this many missed boxes")
+    args = ap.parse_args(argv)
+    cfg = DEFAULT
+    box = cfg.box
+    t0 = time.perf_counter()
+    if args.weights:
+        model = E.load(args.weights, expected_box_config=box)
+        _check_exploration(model, cfg, args.weights)
+    else:
+        model = default_estimator(cfg)
+
+    key_g, key_i, key_s, key_a = jax.random.split(jax.random.key(args.seed), 4)
+    fams = {
+        "gaussian": _draw(massdist.sample_hazardous, key_g, args.hazardous, box),
+        "items": _draw(massdist.sample_items_hazardous, key_i, args.hazardous, box),
+        "safe": _safe(key_s, args.safe, box),
+    }
+    if args.items_any:
+        fams["items_any"] = _draw(massdist.sample_items, key_a, args.items_any, box)
+    family = np.concatenate([[f] * int(np.shape(d.total_mass)[0]) for f, d in fams.items()])
+    dists = jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *fams.values())
+    t1 = time.perf_counter()
+    data = ds.simulate(cfg, dists, progress=False, chunk=500)
+    sim_s = time.perf_counter() - t1
+    ev = jax.tree.map(
+        np.asarray, hazard.evidence_batch(model, jnp.asarray(data["traj"]), jnp.asarray(data["final"]))
+    )
+    truth = massdist.MassDistribution(jnp.asarray(data["occupancy"]), jnp.asarray(data["total_mass"]))
+    true_com = np.asarray(jax.vmap(lambda d: massdist.mass_properties(d, box).com)(truth))
+    true_region = np.asarray(jax.vmap(massdist.hazard_region, in_axes=(0, None))(truth, box))
+    haz = np.asarray(data["hazardous"], bool)
+    # Boxes whose balance error passed the 4 cm limit during the exploration itself (an episode fails there).
+    lost = np.asarray(data["max_balance_error"]) > cfg.task.balance_limit
+
+    decisions = {r: hazard.decide_batch(model, ev, r) for r in hazard.HAZARD_RULES}
+    rules = {}
+    for r, dec in decisions.items():
+        h = dec["hazardous"]
+        row = {}
+        for f in fams:
+            m = family == f
+            if f == "safe":
+                row["safe_false_aborts"] = int(h[m].sum())
+                row["safe_false_abort_rate"] = _rate(h[m])
+            elif f == "items_any":
+                row["items_any_recall"] = _rate(h[m & haz])
+                row["items_any_false_abort_rate"] = _rate(h[m & ~haz])
+            else:
+                row[f"{f}_refused"] = int(h[m].sum())
+                row[f"{f}_recall"] = _rate(h[m])
+        rules[r] = row
+
+    # Physical diagnostics: centre-of-mass error (cm) and the true centre of mass's depth inside its region.
+    ax, sg = np.array([0, 0, 1, 1]), np.array([-1.0, 1.0, -1.0, 1.0])
+    quarter = np.array([box.size[a] / 4 for a in ax])
+    true_depth = sg * true_com[:, ax] - quarter  # (B, 4) m
+    com_err = 100 * np.linalg.norm(ev.com - true_com, axis=1)
+    diag = {}
+    for f in fams:
+        m = family == f
+        row = {"com_error_cm": _pct(com_err[m])}
+        hm = m & haz
+        if hm.any():
+            i = np.where(hm)[0]
+            r = true_region[i]
+            d_true = 100 * true_depth[i, r]
+            d_est = 100 * ev.depth[i, r]
+            row["true_com_depth_in_region_cm"] = _pct(d_true, (0, 5, 50))
+            row["est_com_depth_in_region_cm"] = _pct(d_est, (0, 5, 50))
+            row["est_mass_fraction_in_region"] = {
+                f"p{q}": round(float(np.percentile(ev.fraction[i, r], q)), 3) for q in (0, 5, 50)
+            }
+        if f == "safe":
+            row["est_max_mass_fraction_in_a_region"] = {
+                f"p{q}": round(float(np.percentile(ev.fraction[m].max(1), q)), 3) for q in (50, 95, 98, 100)
+            }
+            # A rule on the TRUE centre of mass that refuses every hazardous box would abort these safe boxes:
+            row["true_com_in_a_quarter_rate"] = _rate((true_depth[m] >= 0).any(1))
+            min_haz = min(
+                float(np.min(true_depth[np.where(family == g)[0], true_region[family == g]]))
+                for g in ("gaussian", "items")
+                if np.any(family == g)
+            )
+            row["true_com_as_deep_as_shallowest_hazardous_rate"] = _rate((true_depth[m] >= min_haz).any(1))
+            row["shallowest_hazardous_true_depth_cm"] = round(100 * min_haz, 2)
+        diag[f] = row
+
+    misses = {}
+    for f in ("gaussian", "items"):
+        i = np.where((family == f) & ~decisions["physics"]["hazardous"])[0][: args.show_misses]
+        texts = []
+        for j in i:
+            one = jax.tree.map(lambda a, j=j: a[j], ev)
+            true = massdist.MassDistribution(truth.occupancy[j], truth.total_mass[j])
+            text = hazard.explain(model, one, hazard.decide(model, one))
+            texts.append(text + " Truth: " + massdist.describe(true, box).replace("\n", "; "))
+        misses[f] = texts
+    result = {
+        "seed": args.seed,
+        "weights": args.weights or "boxjax/data/estimator.npz",
+        "boxes": {f: int((family == f).sum()) for f in fams},
+        "hazard_threshold": model.hazard_threshold,
+        "physics_rule": dataclasses.asdict(hazard.DEFAULT_RULE),
+        "rules": rules,
+        "diagnostics": diag,
+        "missed_by_physics_rule": misses,
+        "explore_balance_exceeded": {f: int(lost[family == f].sum()) for f in fams},
+        "simulate_s": round(sim_s, 1),
+        "total_s": round(time.perf_counter() - t0, 1),
+    }
+    print(json.dumps(result))
+    return result
+
+
+if __name__ == "__main__":
+    main()
