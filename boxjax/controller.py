@@ -88,15 +88,24 @@ def oracle_estimator(truth: massdist.MassDistribution, cfg: Config) -> dict:
     return {"distribution": truth, "hazardous": bool(massdist.is_hazardous(truth, cfg.box))}
 
 
-def learned_estimator(cfg: Config, weights: str | None = None):
+def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str = "physics"):
     """The learned H as a controller estimator: exploration dict -> {"distribution", "hazardous", ...}.
 
     weights: an estimator checkpoint (default: the one shipped with boxjax). Raises CheckpointError for a
     missing, corrupt or incompatible file.
+    hazard_rule: "physics" (default: refuse when H's ensemble puts the centre of mass and the mass inside
+    an outer quarter, or when H's hazard head says so; `boxjax.hazard`), "head" (the hazard head alone, the
+    previous rule) or "physics_only". With a physics rule the dict also holds "hazard_explanation" (the
+    estimated centre of mass, its uncertainty and the region, in words), "hazard_margin" and
+    "hazard_region"; "hazard_prob" stays the head's probability.
     """
     from boxjax import estimator as E
-    from boxjax import explore
+    from boxjax import explore, hazard
     from boxjax.estimator_pipeline import default_estimator
+
+    if hazard_rule not in hazard.HAZARD_RULES:
+        choices = ", ".join(hazard.HAZARD_RULES)
+        raise ValueError(f"unknown hazard rule {hazard_rule!r}; choose one of {choices}")
 
     model = default_estimator(cfg) if weights is None else E.load(weights, expected_box_config=cfg.box)
     applied = explore.applied_actions(cfg)
@@ -108,7 +117,12 @@ def learned_estimator(cfg: Config, weights: str | None = None):
                 f"{exploration['actions'].shape[0]} steps (did the box leave the belts while exploring?)"
             )
         traj, final = explore.trajectory(exploration["s"], exploration["belt_speed"], applied)
-        return E.estimate(model, np.asarray(traj), np.asarray(final))
+        out = E.estimate(model, np.asarray(traj), np.asarray(final))
+        if hazard_rule != "head":
+            a = hazard.assess(model, np.asarray(traj), np.asarray(final), hazard_rule)
+            keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")
+            out.update({k: a[k] for k in keys}, hazard_rule=hazard_rule)
+        return out
 
     return estimate
 
