@@ -1,0 +1,223 @@
+"""The paper's comparison (Table 1) and W's generalisation gap, as functions that return plain data.
+
+`compare`: for each named box (A, B, C, D) and seed, one closed-loop episode per method with the SAME
+planner (`controller.make_planner`, default predictive sampling):
+  * "prior": the physics-prior MPC with the learned H (45-step exploration, estimate, refuse if hazardous,
+    turn), zero-shot;
+  * "blackbox": the black box W (`baseline`) in the model slot, no exploration or estimate (it has none to
+    make), adapted online for `adapt_epochs` epochs on the episode's data every `adapt_every` steps.
+Each row: method, box, seed, outcome, steps, wall time (adaptation included), adaptation time and count,
+worst balance error. `table` aggregates rows per (box, method) beside the paper's numbers.
+
+`generalisation_gap`: one-step errors of W (trained on A) and of the physics prior (true masses) on fresh
+episodes of A and of C (`baseline_train.collect`, another seed than W's training data).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import jax
+
+from boxjax import baseline, baseline_train, massdist
+from boxjax.config import DEFAULT, Config
+from boxjax.controller import ControllerConfig, learned_estimator, run_episode
+
+METHODS = ("prior", "blackbox")
+PAPER_TABLE1 = {  # paper Table 1: success ratio, average steps (D: the prior aborts, W 0 %)
+    ("A", "prior"): (1.0, 238.8),
+    ("A", "blackbox"): (1.0, 367.4),
+    ("B", "prior"): (1.0, 389.2),
+    ("B", "blackbox"): (1.0, 269.6),
+    ("C", "prior"): (1.0, 527.8),
+    ("C", "blackbox"): (0.6, 401.0),
+    ("D", "prior"): ("aborts", None),
+    ("D", "blackbox"): (0.0, None),
+}
+
+
+def outcome(summary: dict) -> str:
+    if summary["aborted"]:
+        return "refused"
+    if summary["success"]:
+        return "success"
+    return summary["failed_reason"] or "failed"
+
+
+def blackbox_episode(
+    cfg: Config,
+    name: str,
+    seed: int,
+    model=None,
+    adapt_every: int = 20,
+    adapt_epochs: int = 1,
+    ctrl: ControllerConfig | None = None,
+) -> dict:
+    """One episode of W (with online adaptation) on the named box; a plain row."""
+    model = baseline.default_model(cfg.gripper) if model is None else model
+    ctrl = ctrl or ControllerConfig()
+    adapter = baseline.make_adapter(adapt_epochs) if adapt_every > 0 and adapt_epochs > 0 else None
+    ctrl = ControllerConfig(
+        **{**ctrl.__dict__, "explore": False, "adapt_every": adapt_every if adapter else 0}
+    )
+    res = run_episode(
+        cfg, massdist.named(name, cfg.box), jax.random.PRNGKey(seed), ctrl=ctrl, model=model, adapter=adapter
+    )
+    return _row("blackbox", name, seed, res.summary)
+
+
+def prior_episode(
+    cfg: Config, name: str, seed: int, estimator="learned", ctrl: ControllerConfig | None = None
+) -> dict:
+    """One episode of the physics-prior MPC (learned H by default) on the named box; a plain row."""
+    est = learned_estimator(cfg) if estimator == "learned" else estimator
+    res = run_episode(
+        cfg,
+        massdist.named(name, cfg.box),
+        jax.random.PRNGKey(seed),
+        estimator=est,
+        ctrl=ctrl or ControllerConfig(),
+    )
+    return _row("prior", name, seed, res.summary)
+
+
+def _row(method: str, name: str, seed: int, s: dict) -> dict:
+    return {
+        "method": method,
+        "box": name,
+        "seed": seed,
+        "outcome": outcome(s),
+        "success": bool(s["success"]),
+        "steps": int(s["steps"]),
+        "wall_s": float(s["wall_s"]),
+        "adapt_s": float(s["adapt_s"]),
+        "adaptations": int(s["adaptations"]),
+        "adapt_epoch_s": float(s["adapt_s"]) / s["adaptations"] if s["adaptations"] else None,
+        "max_balance_error_m": float(s["max_balance_error_m"]),
+        "plan_ms_median": s["plan_ms_median"],
+    }
+
+
+def compare(
+    cfg: Config = DEFAULT,
+    boxes=("A", "B", "C", "D"),
+    seeds: int = 5,
+    methods=METHODS,
+    model=None,
+    adapt_every: int = 20,
+    adapt_epochs: int = 1,
+    progress: bool = True,
+) -> dict:
+    """Table 1: rows (one per box, method, seed) and `table` (aggregated); plain data."""
+    from tqdm.auto import tqdm
+
+    rows = []
+    t0 = time.perf_counter()
+    jobs = [(m, b, s) for b in boxes for m in methods for s in range(seeds)]
+    for m, b, s in tqdm(jobs, desc="compare (episodes)", disable=not progress, leave=False):
+        if m == "prior":
+            rows.append(prior_episode(cfg, b, s))
+        else:
+            rows.append(blackbox_episode(cfg, b, s, model, adapt_every, adapt_epochs))
+    return {
+        "rows": rows,
+        "table": table(rows),
+        "wall_s": time.perf_counter() - t0,
+        "adapt_every": adapt_every,
+        "adapt_epochs": adapt_epochs,
+    }
+
+
+def table(rows: list[dict]) -> list[dict]:
+    """Per (box, method): success ratio, refusals, mean steps over successes, mean wall time per episode,
+    mean adaptation time per episode and per epoch, worst balance error; beside the paper's numbers."""
+    out = []
+    keys = list(dict.fromkeys((r["box"], r["method"]) for r in rows))
+    for box, method in keys:
+        rs = [r for r in rows if r["box"] == box and r["method"] == method]
+        ok = [r for r in rs if r["success"]]
+        epochs = [r["adapt_epoch_s"] for r in rs if r["adapt_epoch_s"] is not None]
+        ran = [r for r in rs if r["outcome"] != "refused"]
+        paper = PAPER_TABLE1.get((box, method))
+        out.append(
+            {
+                "box": box,
+                "method": method,
+                "episodes": len(rs),
+                "success_ratio": len(ok) / len(rs),
+                "refused": sum(r["outcome"] == "refused" for r in rs),
+                "outcomes": {
+                    o: sum(r["outcome"] == o for r in rs) for o in dict.fromkeys(x["outcome"] for x in rs)
+                },
+                "mean_steps_successes": statistics.mean(r["steps"] for r in ok) if ok else None,
+                "mean_wall_s": statistics.mean(r["wall_s"] for r in rs),
+                "mean_adapt_s": statistics.mean(r["adapt_s"] for r in rs),
+                "adapt_epoch_s_median": statistics.median(epochs) if epochs else None,
+                "worst_balance_m": max(r["max_balance_error_m"] for r in ran) if ran else None,
+                "paper_success": paper[0] if paper else None,
+                "paper_steps": paper[1] if paper else None,
+            }
+        )
+    return out
+
+
+def generalisation_gap(
+    cfg: Config = DEFAULT,
+    model=None,
+    boxes=("A", "C"),
+    n_episodes: int = 20,
+    seed: int = 1000,
+    progress: bool = True,
+) -> dict:
+    """One-step errors (median / p90 / mean, mm and degrees) of W, the prior (true masses) and constant
+    velocity on `n_episodes` fresh episodes of each box (baseline_train's episode mix, seed `seed`)."""
+    model = baseline.default_model(cfg.gripper) if model is None else model
+    out = {}
+    for name in boxes:
+        truth = massdist.named(name, cfg.box)
+        t0 = time.perf_counter()
+        eps = baseline_train.collect(cfg, truth, n_episodes, seed, progress)
+        tr = baseline_train.transitions_of(eps)
+        out[name] = {
+            **baseline_train.compare_errors(model, tr, truth, cfg),
+            "wall_s": time.perf_counter() - t0,
+        }
+    return out
+
+
+def format_table(rows: list[dict]) -> str:
+    """Markdown of `table` rows."""
+    cols = (
+        "box",
+        "method",
+        "success",
+        "steps (successes)",
+        "wall s / episode",
+        "adaptation s / episode",
+        "worst balance",
+        "paper success",
+        "paper steps",
+    )
+    lines = ["| " + " | ".join(cols) + " |", "| --- " * len(cols) + "|"]
+
+    def f(x, p="{:.1f}"):
+        return "-" if x is None else p.format(x)
+
+    for r in rows:
+        n_ok = round(r["success_ratio"] * r["episodes"])
+        refused = f" (refused {r['refused']})" if r["refused"] else ""
+        bal = None if r["worst_balance_m"] is None else 100 * r["worst_balance_m"]
+        cells = (
+            r["box"],
+            r["method"],
+            f"{n_ok}/{r['episodes']}{refused}",
+            f(r["mean_steps_successes"]),
+            f(r["mean_wall_s"]),
+            f(r["mean_adapt_s"], "{:.2f}"),
+            f(bal, "{:.1f} cm"),
+            str(r["paper_success"]),
+            f(r["paper_steps"]),
+        )
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
