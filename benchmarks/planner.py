@@ -28,6 +28,17 @@ from boxjax import sampling_planner as sp
 from boxjax.config import DEFAULT
 
 
+# Sampling-planner settings timed (SamplingOptions overrides; "default" is the class default).
+SAMPLING_CONFIGS = {
+    "default": {},
+    "n256_h10": {"n_samples": 256},
+    "n128_h20_knots4": {"n_samples": 128, "horizon": 20, "n_knots": 4},
+    "n64_h20_knots4_cem2": {"n_samples": 64, "horizon": 20, "n_knots": 4, "update": "cem", "iterations": 2},
+    "n128_h20_knots4_mppi": {"n_samples": 128, "horizon": 20, "n_knots": 4, "update": "mppi"},
+    "n64_h20_knots4_grad5": {"n_samples": 64, "horizon": 20, "n_knots": 4, "gradient_steps": 5},
+}
+
+
 def _latency(fn, args_for_call, calls: int) -> dict:
     times = []
     for i in range(calls):
@@ -94,17 +105,18 @@ def main() -> None:
         plan4096, lambda i: (keys[i], model, window, speed, target), min(calls, 50)
     )
 
-    # The predictive-sampling planner ("slip" prior only: it plans full 4-d actions).
+    # The sampling planners ("slip" prior only: they plan full 4-d actions), each option set by name.
     if args.variant == "slip":
-        for n in (sp.SamplingOptions().n_samples, 4 * sp.SamplingOptions().n_samples):
-            opts = sp.SamplingOptions(n_samples=n)
+        for name, kw in SAMPLING_CONFIGS.items():
+            opts = sp.SamplingOptions(**kw)
             splan = sp.make_sampling_planner(cfg, opts)
             nominal = sp.initial_nominal(cfg, opts, speed)
             t0 = time.perf_counter()
             jax.block_until_ready(splan(keys[0], model, window, speed, target, nominal))
-            out[f"sampling_{n}x{opts.horizon}"] = {
+            out[f"sampling_{name}"] = {
+                "options": kw,
                 "compile_s": time.perf_counter() - t0,
-                "predictions_per_step": n * opts.horizon,
+                "predictions_per_step": opts.n_samples * opts.horizon * opts.iterations,
                 **_latency(
                     splan,
                     lambda i, nom=nominal: (keys[i], model, window, speed, target, nom),

@@ -8,6 +8,9 @@
     boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE] [--backend native|mjx] [--chunk 500]
         [--json]
     boxjax calibrate [--transitions 400] [--seed S] --out FILE [--plot FILE.png] [--json]
+    boxjax train-baseline [--distribution A] [--episodes 200] [--seed 0] --out DIR [--data FILE] [--json]
+    boxjax rotate ... --model blackbox [--model-weights FILE] [--adapt-every 20] [--adapt-epochs 1]
+    boxjax compare [--seeds 5] [--boxes A B C D] [--methods prior blackbox] [--out DIR] [--json]
 
 With --json the last line printed is one JSON object (the summary); everything else goes before it.
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -85,27 +89,32 @@ def cmd_rotate(args) -> dict:
 
     from boxjax import massdist
     from boxjax.config import DEFAULT
-    from boxjax.controller import ControllerConfig, run_episode
+    from boxjax.controller import run_episode
 
     cfg = DEFAULT
+    if args.replay is not None and (args.model != "prior" or args.model_weights is not None):
+        raise ValueError("--replay runs the evaluation's own episode; --model / --model-weights would do nothing")
+    if args.replay is not None:
+        return _replay(args, cfg)
+    if args.index is not None:
+        raise ValueError("--index picks a box of --replay DIR; it does nothing without --replay")
+    args.distribution = args.distribution or "A"
+    args.estimator = args.estimator or "oracle"
     dist = massdist.named(args.distribution, cfg.box)
     estimator = "oracle"
     if args.estimator == "learned":
         from boxjax.controller import learned_estimator
 
         estimator = learned_estimator(cfg, args.weights)
-    ctrl = ControllerConfig(
-        rule=args.rule,
-        n_samples=args.samples,
-        horizon=args.horizon,
-        variant=args.variant,
-        planner=args.planner,
-    )
+    ctrl = _controller_config(args)
+    ctrl, model, adapter, slot = _model_slot(args, ctrl)
     res = run_episode(
-        cfg, dist, jax.random.PRNGKey(args.seed), estimator=estimator, ctrl=ctrl, backend=args.backend
+        cfg, dist, jax.random.PRNGKey(args.seed), estimator=estimator, ctrl=ctrl, backend=args.backend,
+        model=model, adapter=adapter,
     )
     summary = {
         "command": "rotate",
+        **slot,
         "distribution": args.distribution,
         "estimator": args.estimator,
         "backend": args.backend,
@@ -114,16 +123,159 @@ def cmd_rotate(args) -> dict:
         "variant": args.variant,
         **res.summary,
     }
+    summary = _finish_rotate(args, cfg, res, summary, massdist.describe(dist, cfg.box))
+    return summary
+
+
+def _replay(args, cfg) -> dict:
+    """`rotate --replay DIR --index K`: box K of an evaluation, with its key, estimator and controller."""
+    from boxjax import experiments, massdist
+
+    given = [f"--{n}" for n in ("distribution", "estimator", "weights") if getattr(args, n) is not None]
+    given += [f"--{n}" for n, d in (("seed", 0), ("planner", "sampling"), ("variant", "slip"), ("rule", "random"),
+                                    ("samples", 50), ("horizon", 1), ("backend", "native")) if getattr(args, n) != d]
+    if given:
+        raise ValueError(f"--replay runs the evaluation's own episode; {', '.join(given)} would do nothing")
+    if args.index is None:
+        raise ValueError("--replay DIR needs --index K (the box's row in DIR/evaluation.json)")
+    res, st = experiments.replay(cfg, args.replay, args.index)
+    args.distribution, args.estimator = f"{args.replay}#{args.index}", st["estimator"]
+    summary = {
+        "command": "rotate",
+        "replay": args.replay,
+        "index": args.index,
+        "estimator": st["estimator"],
+        "seed": st["seed"],
+        "planner": st["controller"]["planner"],
+        "variant": st["controller"]["variant"],
+        "outcome": experiments.outcome(res.summary),
+        **res.summary,
+    }
+    return _finish_rotate(args, cfg, res, summary, massdist.describe(res.truth, cfg.box))
+
+
+def _finish_rotate(args, cfg, res, summary: dict, described: str) -> dict:
+    seed = summary["seed"]
     if not args.json:
-        sys.stdout.write(f"{args.distribution}: {massdist.describe(dist, cfg.box)}\n")
+        sys.stdout.write(f"{args.distribution}: {described}\n")
         if res.summary["aborted"]:
             sys.stdout.write(res.summary["abort_reason"] + "\n")
     if args.plot:
         from boxjax.plots import plot_episode
 
-        title = f"rotate {args.distribution} ({args.estimator}), seed {args.seed}"
+        title = f"rotate {args.distribution} ({args.estimator}), seed {seed}"
         target = float(res.trace.s[0, 4]) + cfg.task.target_yaw_delta
         summary["plot"] = plot_episode(res.trace, args.plot, cfg.task.balance_limit, target, title)
+    return summary
+
+
+def _model_slot(args, ctrl):
+    """(ctrl, model, adapter, summary fields) for `rotate --model prior|blackbox`: the black box W fills
+    the planners' model slot (no exploration, no estimator), adapted online every --adapt-every steps
+    (default 20, 0: never) for --adapt-epochs epochs (default 1)."""
+    import dataclasses
+
+    if args.model == "prior":
+        given = [f"--{n}" for n in ("adapt-every", "adapt-epochs", "model-weights")
+                 if getattr(args, n.replace("-", "_")) is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)}: options of --model blackbox; --model prior has no W to adapt")
+        return ctrl, None, None, {"model": "prior"}
+    from boxjax import baseline
+
+    if args.estimator != "oracle" or args.variant != "slip":
+        raise ValueError("--model blackbox plans with W alone: --estimator and --variant do nothing with it")
+    every = 20 if args.adapt_every is None else args.adapt_every
+    epochs = 1 if args.adapt_epochs is None else args.adapt_epochs
+    if every < 0 or epochs < 0:
+        raise ValueError(f"--adapt-every and --adapt-epochs must be >= 0, got {every}, {epochs}")
+    model = baseline.default_model() if args.model_weights is None else baseline.load(args.model_weights)
+    adapter = baseline.make_adapter(epochs) if every > 0 and epochs > 0 else None
+    ctrl = dataclasses.replace(ctrl, explore=False, adapt_every=every if adapter else 0)
+    return ctrl, model, adapter, {"model": "blackbox", "adapt_every": every, "adapt_epochs": epochs}
+
+
+def cmd_train_baseline(args) -> dict:
+    from boxjax import baseline_train
+
+    if os.path.exists(os.path.join(args.out, "baseline.npz")) and not args.force:
+        raise ValueError(f"--out {args.out} already holds baseline.npz; pass --force to overwrite it")
+    return baseline_train.train_baseline(
+        distribution=args.distribution, n_episodes=args.episodes, seed=args.seed, out=args.out,
+        progress=not args.json, data=args.data,
+    )
+
+
+def cmd_compare(args) -> dict:
+    """Paper Table 1: the physics prior (learned H) and the black box W (online adaptation), same planner."""
+    import json as _json
+
+    from boxjax import comparison
+    from boxjax.config import DEFAULT
+
+    if args.seeds < 1 or args.adapt_every < 0 or args.adapt_epochs < 0:
+        raise ValueError("--seeds must be >= 1, --adapt-every and --adapt-epochs >= 0")
+    model = None
+    if "blackbox" in args.methods:
+        from boxjax import baseline
+
+        model = baseline.default_model() if args.model_weights is None else baseline.load(args.model_weights)
+    res = comparison.compare(DEFAULT, tuple(args.boxes), args.seeds, tuple(args.methods), model,
+                             args.adapt_every, args.adapt_epochs, progress=not args.json)  # fmt: skip
+    if args.out:
+        from boxjax.fileio import atomic_path
+
+        os.makedirs(args.out, exist_ok=True)
+        with atomic_path(os.path.join(args.out, "comparison.json"), suffix=".json") as tmp:
+            with open(tmp, "w") as f:
+                _json.dump(res, f, indent=1)
+        res["file"] = os.path.join(args.out, "comparison.json")
+    if not args.json:
+        sys.stdout.write(comparison.format_table(res["table"]) + "\n")
+    return {"command": "compare", **res}
+
+
+def _controller_config(args):
+    """The ControllerConfig of --planner / --variant / paper-planner options, refusing options the chosen
+    planner does not use."""
+    from boxjax.controller import ControllerConfig
+
+    if args.planner == "simulator" and getattr(args, "estimator", None) == "learned":
+        raise ValueError("--planner simulator needs the true simulator state: use --estimator oracle")
+    if args.planner != "paper":
+        for name, default in (("rule", "random"), ("samples", 50), ("horizon", 1)):
+            if getattr(args, name) != default:
+                raise ValueError(f"--{name} is an option of the paper planner; it does nothing for --planner {args.planner}")
+    if args.samples < 1 or args.horizon < 1:
+        raise ValueError(f"--samples and --horizon must be >= 1, got {args.samples}, {args.horizon}")
+    return ControllerConfig(
+        rule=args.rule, n_samples=args.samples, horizon=args.horizon, variant=args.variant, planner=args.planner
+    )
+
+
+def cmd_evaluate(args) -> dict:
+    from boxjax import experiments
+    from boxjax.config import DEFAULT
+
+    cfg = DEFAULT
+    if args.boxes < 1:
+        raise ValueError(f"--boxes must be >= 1, got {args.boxes}")
+    if args.hazardous < 0:
+        raise ValueError(f"--hazardous must be >= 0, got {args.hazardous}")
+    if args.out and os.path.exists(args.out) and os.listdir(args.out) and not args.force:
+        raise ValueError(f"--out {args.out} exists and is not empty; pass --force to overwrite its results")
+    ctrl = _controller_config(args)
+    ev = experiments.evaluate(
+        cfg, args.boxes, args.hazardous, args.seed, estimator=args.estimator, ctrl=ctrl,
+        family=args.hazard_family, progress=not args.quiet,
+    )
+    summary = {"command": "evaluate", **ev.summary}
+    if args.out:
+        summary["files"] = experiments.write_evaluation(ev, args.out, " ".join(["boxjax", *sys.argv[1:]]))
+    if args.plot:
+        from boxjax.plots import plot_evaluation
+
+        summary["plot"] = plot_evaluation(ev, args.plot, cfg)
     return summary
 
 
@@ -305,6 +457,27 @@ def _simulation_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _planner_args(p: argparse.ArgumentParser) -> None:
+    from boxjax.controller import PLANNERS
+
+    p.add_argument("--rule", default="random", help="Pareto-front selection rule (planner.RULES)")
+    p.add_argument("--samples", type=int, default=50, help="actions scored per control step")
+    p.add_argument("--horizon", type=int, default=1, help="prediction steps per candidate")
+    p.add_argument(
+        "--planner",
+        choices=PLANNERS,
+        default="sampling",
+        help="paper: one-step Pareto random shooting (§2.3); sampling: predictive sampling over sequences; "
+        "simulator: privileged reference that plans with MuJoCo itself (oracle estimator only, slow)",
+    )
+    p.add_argument(
+        "--variant",
+        choices=("slip", "paper"),
+        default="slip",
+        help="physics prior: slip (friction on the belt-box slip) or paper (calibrated force map, eqs. 4-14)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     from boxjax.massdist import NAMES
     from boxjax.sim import BACKENDS
@@ -324,29 +497,60 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     r = sub.add_parser("rotate", help="explore, estimate, then refuse or turn the box with the MPC")
-    r.add_argument("--distribution", choices=NAMES, default="A")
-    r.add_argument("--estimator", choices=("oracle", "learned"), default="oracle")
+    r.add_argument("--distribution", choices=NAMES, default=None, help="named box (default A)")
+    r.add_argument("--estimator", choices=("oracle", "learned"), default=None, help="default oracle")
     r.add_argument("--weights", help="estimator checkpoint (default: the one shipped with boxjax)")
+    r.add_argument("--replay", metavar="DIR", help="re-run one box of `boxjax evaluate --out DIR` (with --index)")
+    r.add_argument("--index", type=int, help="the box's index in DIR/evaluation.json")
     r.add_argument("--backend", choices=BACKENDS, default="native")
     r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--rule", default="random", help="Pareto-front selection rule (planner.RULES)")
-    r.add_argument("--samples", type=int, default=50, help="actions scored per control step")
-    r.add_argument("--horizon", type=int, default=1, help="prediction steps per candidate")
-    r.add_argument(
-        "--planner",
-        choices=("sampling", "paper"),
-        default="sampling",
-        help="paper: one-step Pareto random shooting (§2.3); sampling: predictive sampling over sequences",
-    )
-    r.add_argument(
-        "--variant",
-        choices=("slip", "paper"),
-        default="slip",
-        help="physics prior: slip (friction on the belt-box slip) or paper (calibrated force map, eqs. 4-14)",
-    )
+    _planner_args(r)
+    r.add_argument("--model", choices=("prior", "blackbox"), default="prior",
+                   help="the planners' model: the physics prior, or the black box W (baseline.py)")
+    r.add_argument("--model-weights", help="W checkpoint for --model blackbox (default: the shipped one)")
+    r.add_argument("--adapt-every", type=int, default=None,
+                   help="--model blackbox: MPC steps between online adaptations of W (default 20; 0: none)")
+    r.add_argument("--adapt-epochs", type=int, default=None,
+                   help="--model blackbox: epochs over the episode's data per adaptation (default 1)")
     r.add_argument("--plot", help="write yaw / balance / belts over the episode to this PNG")
     r.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     r.set_defaults(func=cmd_rotate)
+
+    b = sub.add_parser("train-baseline", help="collect episodes of one box and train the black box W")
+    b.add_argument("--distribution", choices=NAMES, default="A", help="the single training environment")
+    b.add_argument("--episodes", type=int, default=200)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--out", required=True, help="directory for baseline.npz, dataset.npz, report.json")
+    b.add_argument("--data", help="train on the dataset.npz of an earlier run instead of collecting")
+    b.add_argument("--force", action="store_true", help="overwrite OUT/baseline.npz")
+    b.add_argument("--json", action="store_true", help="print the report as one JSON line (no progress bars)")
+    b.set_defaults(func=cmd_train_baseline)
+
+    m = sub.add_parser("compare", help="paper Table 1: physics prior vs black box W on boxes A-D")
+    m.add_argument("--seeds", type=int, default=5)
+    m.add_argument("--boxes", nargs="+", choices=NAMES, default=["A", "B", "C", "D"])
+    m.add_argument("--methods", nargs="+", choices=("prior", "blackbox"), default=["prior", "blackbox"])
+    m.add_argument("--model-weights", help="W checkpoint (default: the shipped one)")
+    m.add_argument("--adapt-every", type=int, default=20, help="steps between W's online adaptations (0: none)")
+    m.add_argument("--adapt-epochs", type=int, default=1)
+    m.add_argument("--out", help="directory for comparison.json")
+    m.add_argument("--json", action="store_true", help="print the result as one JSON line")
+    m.set_defaults(func=cmd_compare)
+
+    v = sub.add_parser("evaluate", help="the controller on many random safe and hazardous boxes (paper §4.3)")
+    v.add_argument("--boxes", type=int, default=100, help="random label-safe boxes")
+    v.add_argument("--hazardous", type=int, default=0, help="random hazardous boxes (all mass in one quarter)")
+    v.add_argument("--hazard-family", choices=("gaussian", "items"), default="gaussian",
+                   help="gaussian: massdist.sample_hazardous (H's training family); items: 1-16 voxels")
+    v.add_argument("--seed", type=int, default=0, help="draws the boxes and every episode's key")
+    v.add_argument("--estimator", choices=("oracle", "learned"), default="oracle")
+    _planner_args(v)
+    v.add_argument("--out", help="directory: evaluation.json (one row per box) and boxes.npz (for --replay)")
+    v.add_argument("--force", action="store_true", help="overwrite the results in a non-empty --out")
+    v.add_argument("--plot", help="balance error over time (paper Fig. 3c) and outcomes over the centre of mass")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
+    v.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+    v.set_defaults(func=cmd_evaluate)
 
     t = sub.add_parser("train-estimator", help="generate exploration data and train the estimator H")
     t.add_argument("--boxes", type=int, default=2000)

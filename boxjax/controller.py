@@ -17,12 +17,12 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from boxjax import massdist, planner, prior, task
+from boxjax import massdist, planner, planning, prior, task
 from boxjax.config import Config
 from boxjax.sim import make_env
 from boxjax.sim.episode import EpisodeTrace
 
-PLANNERS = ("paper", "sampling")
+PLANNERS = ("paper", "sampling", "simulator")  # simulator: privileged reference, oracle only
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +41,8 @@ class ControllerConfig:
     explore: bool = True  # run the fixed exploration phase first (always needed by a learned estimator)
     planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
     sampling: Any = None  # sampling_planner.SamplingOptions (None: its defaults)
+    simulator: Any = None  # simulator_planner.SimulatorOptions (None: its defaults)
+    adapt_every: int = 0  # MPC steps between online adaptations of a learned model (0: none; paper: 20)
 
     def __post_init__(self):
         if self.planner not in PLANNERS:
@@ -56,7 +58,7 @@ class EpisodeResult(NamedTuple):
 
     summary: dict
     trace: EpisodeTrace
-    belief: massdist.MassDistribution
+    belief: massdist.MassDistribution | None  # None when the box was lost while exploring
     truth: massdist.MassDistribution
     plan_ms: np.ndarray  # (n_plans,) wall milliseconds per planning call (after the first)
 
@@ -133,16 +135,28 @@ def _env(cfg: Config, backend: str):
     return make_env(cfg, backend)
 
 
+def _episode_data(rows, actions) -> dict:
+    """The episode so far as arrays: s (T+1, 5), belt_speed (T+1, 2), actions (T, 4)."""
+    return {
+        "s": np.stack([np.asarray(r.s) for r in rows]),
+        "belt_speed": np.stack([np.asarray(r.belt_speed) for r in rows]),
+        "actions": np.asarray(actions, np.float64).reshape(-1, 4),
+    }
+
+
 @lru_cache(maxsize=8)
-def _sampling_planner(cfg: Config, options):
-    from boxjax import sampling_planner as sp
+def make_planner(cfg: Config, ctrl: ControllerConfig) -> planning.Planner:
+    """The planner `ctrl.planner` names, behind the one planner interface (`planning.Planner`); cached
+    per (config, options) so its jitted pieces compile once, not once per episode."""
+    if ctrl.planner == "simulator":
+        from boxjax import simulator_planner
 
-    return sp.make_sampling_planner(cfg, options)
+        return simulator_planner.make(cfg, ctrl.simulator or simulator_planner.SimulatorOptions())
+    if ctrl.planner == "sampling":
+        from boxjax import sampling_planner as sp
 
-
-@lru_cache(maxsize=8)
-def _planner(cfg: Config, ctrl: ControllerConfig):
-    return planner.make_planner(
+        return sp.make(cfg, ctrl.sampling or sp.SamplingOptions())
+    return planner.make(
         cfg,
         n_samples=ctrl.n_samples,
         rule=ctrl.rule,
@@ -165,6 +179,8 @@ def run_episode(
     backend: str = "native",
     force_map=None,
     max_steps: int | None = None,
+    model: Any = None,
+    adapter: Any = None,
 ) -> EpisodeResult:
     """Explore, estimate, then refuse or rotate the box `truth` (which the controller never sees, except
     through the oracle estimator).
@@ -176,7 +192,15 @@ def run_episode(
       force_map: calibrate.ForceMap for the "paper" prior variant (default: the shipped calibration,
         `calibrate.default_force_map`).
       max_steps: control-step cap (default cfg.task.max_steps), exploration included.
+      model: a model for the planners' slot (`planning.Model`, e.g. the black box W), used as it is; the
+        estimator and the hazard check are then skipped (a black box has no physical estimate to refuse
+        on). None (default): the physics prior built on the estimator's belief.
+      adapter: callable(model, data) -> model, online adaptation (paper §4.1): called every
+        `ctrl.adapt_every` MPC steps with this episode's data so far (dict s (T+1, 5), belt_speed
+        (T+1, 2), actions (T, 4)); its wall time is reported apart (`adapt_s`, `adaptations`).
     """
+    if adapter is not None and ctrl.adapt_every < 1:
+        raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
     from boxjax import explore
 
     key_reset, key_plan = jax.random.split(key)
@@ -201,50 +225,52 @@ def run_episode(
                 break
             state = act(state, a)
         n_explore = len(actions)
-    exploration = {
-        "s": np.stack([np.asarray(r.s) for r in rows]),
-        "belt_speed": np.stack([np.asarray(r.belt_speed) for r in rows]),
-        "actions": np.asarray(actions).reshape(-1, 4),
-    }
+    exploration = _episode_data(rows, actions)
 
-    # 2. the belief
-    est = oracle_estimator(truth, cfg) if estimator == "oracle" else estimator(exploration)
-    belief = massdist.validate(est["distribution"], cfg.box)
-
-    # 3. refuse when hazardous
-    why = hazard_explanation(belief, cfg, bool(est["hazardous"]), est.get("hazard_prob"))
+    # 2. the belief. A box lost while exploring (it left the belts, tipped or crossed the balance limit
+    # within the fixed sequence) is a failure of the episode: there is nothing left to estimate or turn.
+    lost_exploring = bool(state.done)
+    est, belief, why = {}, None, None
+    if not lost_exploring and model is None:
+        est = oracle_estimator(truth, cfg) if estimator == "oracle" else estimator(exploration)
+        belief = massdist.validate(est["distribution"], cfg.box)
+        # 3. refuse when hazardous
+        why = hazard_explanation(belief, cfg, bool(est["hazardous"]), est.get("hazard_prob"))
     plan_ms: list[float] = []
-    if why is None and not bool(state.done):
+    adapt_s, adaptations = 0.0, 0
+    if why is None and not lost_exploring:
         # 4. physics-prior MPC
         if ctrl.variant == "paper" and force_map is None:
             from boxjax.calibrate import default_force_map
 
             force_map = default_force_map(cfg)
-        model = prior.make_prior(
-            massdist.voxel_masses(belief, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
-        )
-        if ctrl.planner == "sampling":
-            from boxjax import sampling_planner as sp
-
-            opts = ctrl.sampling or sp.SamplingOptions()
-            splan = _sampling_planner(cfg, opts)
-            nominal = sp.initial_nominal(cfg, opts, state.belt_speed)
-
-            def plan(key, model, w, belt_speed, target_yaw):
-                nonlocal nominal
-                a, info = splan(key, model, w, belt_speed, target_yaw, nominal)
-                nominal = sp.shift_nominal(info.nominal)
-                return a, info
-        else:
-            plan = _planner(cfg, ctrl)
+        if model is None:
+            model = prior.make_prior(
+                massdist.voxel_masses(belief, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
+            )
+        mpc = make_planner(cfg, ctrl)
         window = list(exploration["s"][-prior.MIN_WINDOW :])
         while len(window) < prior.MIN_WINDOW:
             window.insert(0, window[0])
-        while not bool(state.done) and len(actions) < max_steps:
-            key_plan, key_step = jax.random.split(key_plan)
+
+        def observe(state):
             w = prior.check_window(np.asarray(window[-prior.MIN_WINDOW :]))
+            sim = state if mpc.privileged else None
+            return planning.observation(w, np.asarray(state.belt_speed, np.float32), state.target_yaw, sim)
+
+        plan_state = mpc.init(observe(state))
+        mpc_steps = 0
+        while not bool(state.done) and len(actions) < max_steps:
+            if adapter is not None and mpc_steps > 0 and mpc_steps % ctrl.adapt_every == 0:
+                t0 = time.perf_counter()
+                model = adapter(model, _episode_data(rows, actions))
+                adapt_s += time.perf_counter() - t0
+                adaptations += 1
+            mpc_steps += 1
+            key_plan, key_step = jax.random.split(key_plan)
+            obs = observe(state)
             t0 = time.perf_counter()
-            a, _ = plan(key_step, model, w, np.asarray(state.belt_speed, np.float32), state.target_yaw)
+            a, plan_state, _ = mpc.optimize(key_step, model, obs, plan_state)
             a = np.asarray(a, dtype=np.float64)
             plan_ms.append(1e3 * (time.perf_counter() - t0))
             if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
@@ -269,8 +295,11 @@ def run_episode(
         "wall_s": wall,
         "plan_ms_median": statistics.median(timed) if timed else None,
         "truth_hazardous": bool(massdist.is_hazardous(truth, cfg.box)),
+        "lost_exploring": lost_exploring,
+        "adapt_s": adapt_s,
+        "adaptations": adaptations,
     }
-    if estimator != "oracle":
+    if estimator != "oracle" and belief is not None:
         from boxjax.estimator import com_error_cm
 
         summary["iou"] = float(massdist.iou(belief.occupancy, truth.occupancy))

@@ -55,7 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import geometry, prior, task
+from boxjax import geometry, planning, task
 from boxjax.config import Config, GripperConfig
 
 RULES = ("random", "weighted", "lexicographic", "safety-first", "safe-random")
@@ -220,7 +220,7 @@ def y_excess(s, cfg: Config, y_margin: float) -> jax.Array:
 
 def plan(
     key,
-    model: prior.PriorModel,
+    model: planning.Model,
     window,
     belt_speed,
     target_yaw,
@@ -242,7 +242,7 @@ def plan(
 
     Args:
       key: PRNG key (sampling, and the "random" rule).
-      model: prior.PriorModel for this box.
+      model: the model slot (`planning.Model`: the physics prior `prior.PriorModel`, or a black box).
       window: (W, 5) last planar states (W >= prior.MIN_WINDOW), belt_speed: (2,) m/s, target_yaw: rad.
       cfg: the experiment config (gripper limits, task rewards).
       actions: (A, 4) action set (default `action_set(cfg.gripper, velocity=velocity)`), A >= n_samples.
@@ -275,14 +275,11 @@ def plan(
     belt_speed = jnp.asarray(belt_speed, jnp.float32)
     idx = jax.random.permutation(key_sample, n_set)[:n_samples] if n_samples < n_set else jnp.arange(n_set)
     cand = to_env_actions(actions[idx], belt_speed, cfg.gripper, velocity, speed_cap)
-    if horizon == 1 and brake_steps == 0:
-        states = jax.vmap(prior.predict, in_axes=(None, None, None, 0))(model, window, belt_speed, cand)
-        traj = states[:, None]
-    else:
-        traj = jax.vmap(prior.rollout, in_axes=(None, None, None, 0, None, None))(
-            model, window, belt_speed, cand, horizon, brake_steps
-        )  # (N, horizon + brake_steps, 5)
-        states = traj[:, horizon - 1]
+    # Each candidate held for `horizon` steps, then `brake_steps` of braking (setpoints 0, belts in place).
+    held = jnp.broadcast_to(cand[:, None], (cand.shape[0], horizon, 4))
+    seqs = jnp.concatenate([held, jnp.zeros((cand.shape[0], brake_steps, 4), cand.dtype)], axis=1)
+    traj = jax.vmap(lambda seq: model.rollout_sequence(window, belt_speed, seq))(seqs)  # (N, H + B, 5)
+    states = traj[:, horizon - 1]
     bal = jnp.max(jax.vmap(jax.vmap(geometry.balance_error))(traj), axis=1)  # worst over the rollout
     r1 = jax.vmap(task.reward_pose, in_axes=(0, None, None))(states, target_yaw, cfg.task)
     r2 = 1.0 / (bal**2 + cfg.task.reward_eps)  # = task.reward_balance at the worst state
@@ -341,3 +338,14 @@ def make_planner(cfg: Config, **options):
     if "actions" in options and options["actions"] is not None:
         options["actions"] = np.asarray(options["actions"], np.float32)
     return jax.jit(functools.partial(plan, cfg=cfg, **options))
+
+
+def make(cfg: Config, **options) -> planning.Planner:
+    """The paper's planner behind the planner interface (`planning.Planner`); memoryless (plan state ())."""
+    step = make_planner(cfg, **options)
+
+    def optimize(key, model, obs: planning.Observation, plan_state=()):
+        a, info = step(key, model, obs.window, obs.belt_speed, obs.target_yaw)
+        return a, plan_state, info
+
+    return planning.Planner("paper", lambda obs: (), optimize)

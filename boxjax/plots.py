@@ -233,3 +233,62 @@ def plot_force_map(fm, component, value, force, path, title: str | None = None) 
     if title:
         fig.suptitle(title, fontsize=11)
     return save_figure(fig, path)
+
+
+_OUTCOME_STYLE = {  # outcome -> (colour, marker)
+    "success": ("C2", "o"),
+    "aborted": ("0.5", "s"),
+    "unbalanced": ("C3", "x"),
+    "step_cap": ("C1", "^"),
+    "tipped": ("C4", "v"),
+    "off_belts": ("C5", "D"),
+}
+
+
+def plot_evaluation(ev, path, cfg=DEFAULT, title: str | None = None) -> str:
+    """Paper Fig. 3 (c) and a map of outcomes: write a PNG for an `experiments.Evaluation`.
+
+    Left: the balance error over time on the safe boxes that were not refused (median with a one-std band,
+    the worst episode dashed), with the 4 cm limit. Right: each box's outcome at its centre of mass (x, y)
+    in the box frame, with the outer quarters U1..U4 (the hazard slabs) shaded.
+    """
+    fig = _figure((11.0, 4.6))
+    ax_b, ax_m = fig.subplots(1, 2, width_ratios=(1.3, 1.0))
+    dt = cfg.gripper.control_dt
+    safe = [j for j, r in enumerate(ev.rows) if not r["hazardous"] and r["outcome"] != "aborted"]
+    if safe:
+        n = max(len(ev.balance[j]) for j in safe)
+        pad = np.full((len(safe), n), np.nan)
+        for i, j in enumerate(safe):
+            pad[i, : len(ev.balance[j])] = ev.balance[j]
+        t = np.arange(n) * dt
+        with np.errstate(all="ignore"):
+            med, std = np.nanmedian(pad, axis=0), np.nanstd(pad, axis=0)
+        ax_b.plot(t, 100 * med, color="C0", label=f"median ({len(safe)} safe boxes)")
+        ax_b.fill_between(t, 100 * (med - std), 100 * (med + std), color="C0", alpha=0.25, label="one std")
+        worst = safe[int(np.argmax([ev.rows[j]["max_balance_error_m"] for j in safe]))]
+        bw = ev.balance[worst]
+        ax_b.plot(np.arange(len(bw)) * dt, 100 * bw, "r--", lw=1.0, label=f"worst (box {worst})")
+    ax_b.axhline(100 * cfg.task.balance_limit, color="k", ls=":", lw=1.0, label="limit")
+    ax_b.set_xlabel("time (s)")
+    ax_b.set_ylabel("balance error (cm)")
+    ax_b.legend(loc="upper right", fontsize=8)
+    ax_b.set_title("balance error over the episode (paper Fig. 3c)", fontsize=10)
+    hx, hy, _ = (100 * h for h in cfg.box.half_size)
+    for x0, x1, y0, y1 in ((-hx, -hx / 2, -hy, hy), (hx / 2, hx, -hy, hy), (-hx, hx, -hy, -hy / 2), (-hx, hx, hy / 2, hy)):
+        ax_m.fill_between([x0, x1], y0, y1, color="0.85", zorder=0, lw=0)
+    ax_m.plot([-hx, hx, hx, -hx, -hx], [-hy, -hy, hy, hy, -hy], "k-", lw=0.8)
+    for out in sorted({r["outcome"] for r in ev.rows}):
+        colour, marker = _OUTCOME_STYLE.get(out, ("k", "."))
+        pts = np.asarray([r["com_cm"][:2] for r in ev.rows if r["outcome"] == out])
+        haz = np.asarray([r["hazardous"] for r in ev.rows if r["outcome"] == out])
+        ax_m.scatter(pts[:, 0], pts[:, 1], c=colour, marker=marker, s=22, label=f"{out} ({len(pts)})",
+                     edgecolors="k" if marker not in ("x",) else None, linewidths=np.where(haz, 1.2, 0.0))
+    ax_m.set_aspect("equal")
+    ax_m.set_xlabel("centre of mass x (cm, box frame)")
+    ax_m.set_ylabel("centre of mass y (cm)")
+    ax_m.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
+    ax_m.set_title("outcome by centre of mass (shaded: U1..U4; outlined: hazardous)", fontsize=10)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    return save_figure(fig, path)

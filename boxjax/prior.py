@@ -130,6 +130,11 @@ class PriorParams:
     cone: the friction law at each contact element ("slip"): "elliptic" isotropic Coulomb, "pyramidal"
       MuJoCo's pyramidal cone (|f_x| + |f_y| <= mu N, see `dissipation`), or "gripper" (default) the
       cone the gripper is simulated with (GripperConfig.contact_cone).
+    load_transfer: the normal loads include the moment of the belt friction about the centre of mass
+      ("slip" with normal="pressure"; `normal_loads`), updated every substep from the previous one's
+      friction (the first from the observed acceleration, M a). False: loads from gravity alone.
+    carry_velocity: multi-step rollouts carry the predicted end-of-step velocity ("slip";
+      `rollout_sequence`). False: every step re-derives it from the window's finite differences.
     """
 
     variant: str = "slip"
@@ -140,6 +145,8 @@ class PriorParams:
     normal: str = "pressure"
     carriage_omega: float = 100.0
     cone: str = "gripper"
+    load_transfer: bool = True
+    carry_velocity: bool = True
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -184,6 +191,15 @@ class PriorModel:
     box: BoxConfig
     gripper: GripperConfig
     params: PriorParams
+
+    # The model slot of the planners (`planning.Model`).
+    def rollout_sequence(self, window, belt_speed, actions) -> jax.Array:
+        """(H, 5) predicted states for the action sequence (H, 4); see module-level `rollout_sequence`."""
+        return rollout_sequence(self, window, belt_speed, actions)
+
+    def stability_margin(self, s) -> jax.Array:
+        """() m, the centre of mass's distance inside the support polygon; see `stability_margin`."""
+        return stability_margin(self, s)
 
 
 def make_prior(
@@ -415,8 +431,15 @@ def stability_margin(model: PriorModel, s, n_directions: int = 32) -> jax.Array:
     return jnp.min(jnp.max(proj, axis=0))
 
 
-def normal_loads(model: PriorModel, contacts: Contacts) -> jax.Array:
+def normal_loads(model: PriorModel, contacts: Contacts, friction=None) -> jax.Array:
     """(2, E) N, normal force on each contact element from belt 1 / belt 2.
+
+    friction: (2,) N, the total belt friction on the box in box axes (None: zero). Friction acts at the
+    belt surface, h = com_z + half height below the centre of mass, so it tilts the box's load: the
+    moment balance about the centre of mass becomes sum q N = -h F (a box dragged towards -y presses
+    harder on its +y side). Without it, a carriage pulled out from under a box is predicted to drag the
+    box along; measured in the simulator (box with the centre of mass 7.5 cm over belt 1 and 5.6 cm above
+    its centre, belt 1 moved 8 cm outwards): the box moved 1.6 cm, the load-blind prior predicted 7.7.
 
     "pressure": p(q) = a + b q_x + c q_y over the weighted contact elements (q relative to the centre of
     mass), with sum = M g and zero moment about the centre of mass (a rigid box on an elastic belt
@@ -433,7 +456,11 @@ def normal_loads(model: PriorModel, contacts: Contacts) -> jax.Array:
     q = contacts.offsets  # (2, E, 2); frame-independent: the moments vanish in any frame
     phi = jnp.concatenate([jnp.ones_like(w)[..., None], q], axis=-1)  # (2, E, 3)
     mg = model.mass * g
-    rhs = jnp.stack([mg, 0.0 * mg, 0.0 * mg])
+    if friction is None:
+        rhs = jnp.stack([mg, 0.0 * mg, 0.0 * mg])
+    else:
+        h = model.com[2] + model.box.half_size[2]
+        rhs = jnp.concatenate([mg[None], -h * friction])
 
     def solve(active):
         """The linear pressure over the active elements with sum M g and zero moment."""
@@ -613,7 +640,7 @@ def friction_force(u, belt_velocity, off, loads, mu: float, eps: float, cone: st
     return force, jac, per_belt, a_mm, b_mm
 
 
-def _explain_slip(model: PriorModel, window, belt_speed, action):
+def _explain_slip(model: PriorModel, window, belt_speed, action, velocity=None, friction=None):
     gr, prm = model.gripper, model.params
     dt = gr.control_dt
     h = dt / prm.n_substeps
@@ -622,12 +649,13 @@ def _explain_slip(model: PriorModel, window, belt_speed, action):
     s_t = window[-1]
     kin = calibrate.window_kinematics(window, model.com[:2], dt)
     contacts = polygon_contacts(model, s_t) if prm.contact == "polygon" else voxel_contacts(model, s_t)
-    loads = normal_loads(model, contacts)  # (2, E) N
+    static_loads = normal_loads(model, contacts)  # (2, E) N, from gravity alone
+    transfer = prm.load_transfer and prm.normal == "pressure"
     vx, y, p_next = _belt_profiles(model, s_t, belt_speed, action)
     mdiag = jnp.stack([model.mass, model.mass, model.izz])
     mmat = jnp.diag(mdiag)
 
-    def implicit_velocity(u0, ub, off):
+    def implicit_velocity(u0, ub, off, loads):
         """Backward Euler for the velocity: u' = argmin (u' - u0)^T M (u' - u0) / 2 + h dissipation(u'),
         a smooth strongly convex problem in 3 unknowns. Each iteration takes the better (lower objective)
         of a Newton step (exact where the friction is in its linear, near-sticking regime; overshoots
@@ -650,20 +678,25 @@ def _explain_slip(model: PriorModel, window, belt_speed, action):
         return u1, fbs[-1]
 
     def substep(carry, k):
-        rc, th, u = carry
+        rc, th, u, f_prev = carry
+        # The friction of the previous substep (conveyor axes) tilts this substep's loads.
+        loads = normal_loads(model, contacts, f_prev @ rot2(th)) if transfer else static_loads
         tau0, tau1 = k * h, (k + 1) * h
         # Belt speed at the END of the substep (backward Euler: with the trapezoidal position update a
         # box sticking to a ramping belt follows it exactly); carriage speed averaged over the substep
         # (its fast step is mostly slipped through, so the belt's displacement is what matters).
         ub = jnp.stack([vx(tau1), (y(tau1) - y(tau0)) / h], axis=-1)  # (2 belts, 2)
         off = contacts.offsets @ rot2(th).T  # (2, E, 2) conveyor axes
-        u_new, fb = implicit_velocity(u, ub, off)
+        u_new, fb = implicit_velocity(u, ub, off, loads)
         mean_u = 0.5 * (u + u_new)  # second-order Taylor step (eq. 14) per substep: u h + (du / h) h^2 / 2
-        return (rc + h * mean_u[:2], th + h * mean_u[2], u_new), fb
+        return (rc + h * mean_u[:2], th + h * mean_u[2], u_new, jnp.sum(fb, axis=0)), (fb, loads)
 
-    u0 = jnp.concatenate([kin.v, kin.omega[None]])
+    u0 = jnp.concatenate([kin.v, kin.omega[None]]) if velocity is None else velocity
     ks = jnp.arange(prm.n_substeps, dtype=u0.dtype)
-    (rc, th, u), fbs = jax.lax.scan(substep, (kin.rc, kin.theta, u0), ks)
+    # The belts' friction is the only horizontal force on the box: M a from the window, unless known.
+    f0 = model.mass * kin.a0 if friction is None else friction
+    (rc, th, u, f_end), (fbs, loads_k) = jax.lax.scan(substep, (kin.rc, kin.theta, u0, f0), ks)
+    loads = jnp.mean(loads_k, axis=0)
     fb = jnp.mean(fbs, axis=0)  # (2 belts, 2): mean friction on S1, S2 over the step
     info = {
         "forces": jnp.stack([fb[0, 0], fb[1, 0], fb[0, 1], fb[1, 1]]),  # F1, F2 (x), F3, F4 (y), N
@@ -671,6 +704,8 @@ def _explain_slip(model: PriorModel, window, belt_speed, action):
         "contact_area": jnp.sum(contacts.weights, axis=1),  # (2,) voxel footprints (soft |S_i|) or vertices
         "com_velocity": u[:2],
         "omega": u[2],
+        "velocity": u,  # (3,) (vx, vy, omega) at the end of the step: `rollout_sequence` carries it
+        "friction": f_end,  # (2,) N, total belt friction of the last substep (conveyor axes)
     }
     return _geom_state(model, p_next, rc, th), info
 
@@ -714,20 +749,23 @@ def _explain_paper(model: PriorModel, window, belt_speed, action):
     return _geom_state(model, p_next, rc, th), info
 
 
-def explain(model: PriorModel, window, belt_speed, action):
+def explain(model: PriorModel, window, belt_speed, action, velocity=None, friction=None):
     """`predict` plus the physical quantities behind it (for explanations and checks).
 
     Returns (s_next (5,), info dict): 'forces' (4,) N = (F1, F2, F3, F4) (paper §2.3; for "slip" the mean
     friction on S1 / S2 over the step), 'contact_area' (2,) |S1|, |S2| in voxel footprints,
     'com_velocity' (2,) m/s and 'omega' rad/s at the end of the step; "slip" adds 'normal_load' (2,) N,
     "paper" adds 'friction' (2, 2) N (eqs. 11-13 on V1, V2) and 'beta' (2,) m/s^2.
+
+    velocity, friction ("slip" only): the centre of mass's (vx, vy, omega) at t and the belt friction
+    (2,) N at t, when known (from the previous predicted step: `rollout_sequence`); None: from the window.
     """
     window = jnp.asarray(window, jnp.float32)
     belt_speed = jnp.asarray(belt_speed, jnp.float32)
     action = jnp.asarray(action, jnp.float32)
     if model.params.variant == "paper":
         return _explain_paper(model, window, belt_speed, action)
-    return _explain_slip(model, window, belt_speed, action)
+    return _explain_slip(model, window, belt_speed, action, velocity, friction)
 
 
 def predict(model: PriorModel, window, belt_speed, action) -> jax.Array:
@@ -756,17 +794,37 @@ def next_belt_speed(model: PriorModel, belt_speed, action) -> jax.Array:
 
 def rollout_sequence(model: PriorModel, window, belt_speed, actions) -> jax.Array:
     """(H, 5) predicted states for the action sequence `actions` (H, 4). Each step feeds the predicted
-    state back through the window, so velocities come from the same finite differences as for observed
-    states, and the belt speeds follow the setpoints at <= belt_accel_limit (`next_belt_speed`)."""
-
-    def step(carry, a):
-        w, b = carry
-        s = predict(model, w, b, a)
-        return (jnp.concatenate([w[1:], s[None]]), next_belt_speed(model, b, a)), s
-
+    state back through the window, and the belt speeds follow the setpoints at <= belt_accel_limit
+    (`next_belt_speed`). The first step takes its velocities from the window's finite differences, as
+    `predict` does; with the "slip" variant and `carry_velocity` (default) every later step starts from the
+    velocity (and belt friction) the previous predicted step ended with. Finite differences give a step's
+    MEAN velocity, which is not the velocity it ends with when the motion inside the step is a pulse: a
+    carriage step drags the box during its fast 20-30 ms move and the box then slides to rest on the
+    stopped belt. Re-deriving the velocity from positions turns each pulse's mean into momentum the box
+    does not have, and the drag ratchets up step after step (box with the centre of mass 7.5 cm over
+    belt 1, belt 1 pulled 8 cm outwards: 6.9 cm of predicted drag, 1.6 cm in the simulator)."""
     window = jnp.asarray(window, jnp.float32)[-MIN_WINDOW:]
-    carry = (window, jnp.asarray(belt_speed, jnp.float32))
-    _, states = jax.lax.scan(step, carry, jnp.asarray(actions, jnp.float32))
+    belt_speed = jnp.asarray(belt_speed, jnp.float32)
+    actions = jnp.asarray(actions, jnp.float32)
+    if model.params.variant != "slip" or not model.params.carry_velocity:
+
+        def step(carry, a):
+            w, b = carry
+            s = predict(model, w, b, a)
+            return (jnp.concatenate([w[1:], s[None]]), next_belt_speed(model, b, a)), s
+
+        _, states = jax.lax.scan(step, (window, belt_speed), actions)
+        return states
+
+    def step_carried(carry, a):
+        w, b, u, f = carry
+        s, info = _explain_slip(model, w, b, a, u, f)
+        w = jnp.concatenate([w[1:], s[None]])
+        return (w, next_belt_speed(model, b, a), info["velocity"], info["friction"]), s
+
+    kin = calibrate.window_kinematics(window, model.com[:2], model.gripper.control_dt)
+    u0 = jnp.concatenate([kin.v, kin.omega[None]])
+    _, states = jax.lax.scan(step_carried, (window, belt_speed, u0, model.mass * kin.a0), actions)
     return states
 
 

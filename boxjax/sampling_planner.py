@@ -45,9 +45,13 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from boxjax import geometry, planner, prior
+from boxjax import geometry, planner, planning
 from boxjax.config import Config
+
+
+UPDATES = ("best", "mppi", "cem")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,10 +74,32 @@ class SamplingOptions:
     support_margin: float = 0.06  # m, each belt keeps at least this much of its width under the box
     tip_margin: float = 0.03  # m, the centre of mass stays this far inside the support polygon
     w_effort: float = 0.01
+    # Perturbations drawn at this many knots spread evenly over the horizon and interpolated linearly in
+    # between (MuJoCo MPC's spline parameterisation); None: an independent draw at every step.
+    n_knots: int | None = None
+    # How the sampling mean moves between rounds: "best" (predictive sampling: the lowest-cost sequence),
+    # "mppi" (cost-weighted mean, `temperature`), "cem" (mean and std of the `n_elite` best).
+    update: str = "best"
+    iterations: int = 1  # sampling rounds per control step (each n_samples sequences)
+    temperature: float = 0.1  # MPPI, relative to the mean cost spread above the best
+    n_elite: int = 8  # CEM
+    min_sigma_fraction: float = 0.2  # CEM, the std never shrinks below this fraction of the sigmas
+    gradient_steps: int = 0  # Adam steps through the prior on the chosen sequence (0: none)
+    gradient_lr: float = 0.1  # in units of the perturbation std per step
 
     def __post_init__(self):
         if self.n_samples < 2 or self.horizon < 1:
             raise ValueError(f"need n_samples >= 2 and horizon >= 1, got {self.n_samples}, {self.horizon}")
+        if self.update not in UPDATES:
+            raise ValueError(f"unknown update {self.update!r}; choose one of {UPDATES}")
+        if self.iterations < 1 or self.gradient_steps < 0:
+            raise ValueError(f"need iterations >= 1 and gradient_steps >= 0, got {self.iterations}, {self.gradient_steps}")
+        if self.update == "cem" and not 1 <= self.n_elite < self.n_samples:
+            raise ValueError(f"CEM needs 1 <= n_elite < n_samples, got {self.n_elite}, {self.n_samples}")
+        if self.temperature <= 0 or not 0 < self.min_sigma_fraction <= 1:
+            raise ValueError("need temperature > 0 and min_sigma_fraction in (0, 1]")
+        if self.n_knots is not None and not 2 <= self.n_knots <= self.horizon:
+            raise ValueError(f"n_knots must be in 2..horizon ({self.horizon}) or None, got {self.n_knots}")
         if min(self.speed_sigma, self.position_sigma) < 0 or not 0 < self.safe_fraction <= 1:
             raise ValueError("sigmas must be >= 0 and safe_fraction in (0, 1]")
 
@@ -99,6 +125,22 @@ def initial_nominal(cfg: Config, options: SamplingOptions, belt_speed=None) -> j
     """(H, 4) the first nominal: hold the current belt speeds (zero if not given), no sideways moves."""
     v = jnp.zeros(2) if belt_speed is None else jnp.asarray(belt_speed, jnp.float32)
     return jnp.tile(jnp.concatenate([v, jnp.zeros(2)])[None], (options.horizon, 1)).astype(jnp.float32)
+
+
+def knot_matrix(horizon: int, n_knots: int | None) -> np.ndarray:
+    """(horizon, n_knots) linear interpolation from knot values to steps (identity when n_knots is None):
+    knots at steps 0, (H - 1) / (K - 1), ..., H - 1."""
+    if n_knots is None:
+        return np.eye(horizon, dtype=np.float32)
+    t = np.linspace(0.0, n_knots - 1.0, horizon)
+    return np.clip(1.0 - np.abs(t[:, None] - np.arange(n_knots)[None]), 0.0, 1.0).astype(np.float32)
+
+
+def perturbations(key, o: SamplingOptions) -> jax.Array:
+    """(n_samples - 1, horizon, 4) unit-variance-at-the-knots gaussian perturbations (see `n_knots`)."""
+    k = o.horizon if o.n_knots is None else o.n_knots
+    z = jax.random.normal(key, (o.n_samples - 1, k, 4))
+    return jnp.einsum("hk,nkc->nhc", jnp.asarray(knot_matrix(o.horizon, o.n_knots)), z)
 
 
 def shift_nominal(nominal) -> jax.Array:
@@ -130,8 +172,8 @@ def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
 
 
 def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
-    """() cost of one predicted rollout (see module docstring); `model` (the prior's PriorModel) gives the
-    centre of mass and contacts for the tipping barrier."""
+    """() cost of one predicted rollout (see module docstring); `model` (the model slot,
+    `planning.Model`) gives the stability margin for the tipping barrier."""
     lim = cfg.task.balance_limit
     yaw_err = states[:, geometry.YAW] - target_yaw
     bal = jax.vmap(geometry.balance_error)(states) / lim
@@ -139,7 +181,7 @@ def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOpt
     over_y = jax.vmap(lambda s: planner.y_excess(s, cfg, o.y_margin))(states)
     relu2 = lambda u: jnp.square(jnp.maximum(u, 0.0))  # noqa: E731
     support = jax.vmap(lambda s: support_deficit(s, cfg, o.support_margin))(states)
-    tip = o.tip_margin - jax.vmap(lambda s: prior.stability_margin(model, s))(states)
+    tip = o.tip_margin - jax.vmap(model.stability_margin)(states)
     barrier = relu2(bal - o.safe_fraction) + relu2(over_x / lim) + relu2(over_y / lim) + relu2(support / lim)
     barrier = barrier + relu2(tip / lim)
     effort = jnp.sum(jnp.square(actions[:, 2:] / cfg.gripper.max_position_step), axis=-1)
@@ -147,33 +189,112 @@ def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOpt
     return jnp.sum(per_step)
 
 
+def evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg: Config, o: SamplingOptions):
+    """(states (N, H, 5), cost (N,)) of the sequences (N, H, 4) under the model; non-finite costs -> inf."""
+    states = jax.vmap(lambda seq: model.rollout_sequence(window, belt_speed, seq))(seqs)
+    cost = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, None))(model, states, seqs, target_yaw, cfg, o)
+    return states, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+
+
+def _update(seqs, cost, sigma, o: SamplingOptions):
+    """The next sampling mean (H, 4) and std (H, 4) from scored sequences, by `o.update`."""
+    if o.update == "mppi":
+        # Weights exp(-(c - c_min) / (temperature x spread)): the temperature is relative to the spread
+        # of the finite costs, so the rule does not depend on the cost's units (its barriers span 1e3).
+        finite = jnp.isfinite(cost)
+        c = jnp.where(finite, cost, 0.0)
+        lo = jnp.min(jnp.where(finite, cost, jnp.inf))
+        spread = jnp.sum(c - lo * finite) / jnp.maximum(jnp.sum(finite), 1) + 1e-9
+        w = jnp.where(finite, jnp.exp(-(c - lo) / (o.temperature * spread)), 0.0)
+        w = w / jnp.sum(w)
+        return jnp.einsum("n,nhc->hc", w, seqs), sigma
+    # "cem": mean and std of the elite set; the std shrinks to no less than min_sigma_fraction of the prior
+    elite = seqs[jnp.argsort(cost)[: o.n_elite]]
+    std = jnp.clip(jnp.std(elite, axis=0), o.min_sigma_fraction * sigma, sigma)
+    return jnp.mean(elite, axis=0), std
+
+
+def refine_gradient(model, window, belt_speed, target_yaw, seq, cfg: Config, o: SamplingOptions):
+    """`o.gradient_steps` Adam steps (optax) on the rollout cost w.r.t. the sequence (H, 4), through the
+    differentiable prior, projected onto the action limits after each step. Returns (sequence, cost) of
+    the best iterate (the start included), so refining never makes the plan worse under the model."""
+    import optax
+
+    def cost_of(x):
+        st = model.rollout_sequence(window, belt_speed, x)
+        return rollout_cost(model, st, x, target_yaw, cfg, o)
+
+    scale = jnp.array([o.speed_sigma, o.speed_sigma, o.position_sigma, o.position_sigma], jnp.float32)
+    opt = optax.adam(o.gradient_lr)  # in units of the perturbation std: the actions' scales differ by 10x
+    value_grad = jax.value_and_grad(lambda z: cost_of(z * scale))
+
+    def step(carry, _):
+        z, state, best_z, best_c = carry
+        c, g = value_grad(z)
+        g = jnp.where(jnp.isfinite(g), g, 0.0)
+        better = jnp.isfinite(c) & (c < best_c)
+        best_z, best_c = jnp.where(better, z, best_z), jnp.where(better, c, best_c)
+        upd, state = opt.update(g, state, z)
+        z = clip_actions(optax.apply_updates(z, upd) * scale, cfg, o.speed_cap) / scale
+        return (z, state, best_z, best_c), None
+
+    z0 = seq / scale
+    (z, _, best_z, best_c), _ = jax.lax.scan(step, (z0, opt.init(z0), z0, jnp.inf), None, length=o.gradient_steps)
+    c_last = cost_of(z * scale)
+    last_better = jnp.isfinite(c_last) & (c_last < best_c)
+    best_z, best_c = jnp.where(last_better, z, best_z), jnp.where(last_better, c_last, best_c)
+    return best_z * scale, best_c
+
+
 def plan(
-    key, model: prior.PriorModel, window, belt_speed, target_yaw, nominal, cfg: Config, o: SamplingOptions
+    key, model: planning.Model, window, belt_speed, target_yaw, nominal, cfg: Config, o: SamplingOptions
 ):
-    """One predictive-sampling step: (action (4,), SamplingInfo). Pure; jit with `make_sampling_planner`."""
+    """One planning step: (action (4,), SamplingInfo). Pure; jit with `make_sampling_planner`.
+
+    `o.iterations` rounds of: sample around the mean (the nominal first), score, update the mean
+    (`o.update`: keep the best, MPPI's weighted mean, or CEM's elite mean and std). The plan is the
+    lowest-cost sequence evaluated in any round (an updated mean is evaluated too), then optionally
+    refined by gradient (`o.gradient_steps`)."""
     nominal = jnp.asarray(nominal, jnp.float32)
     if nominal.shape != (o.horizon, 4):
         raise ValueError(f"nominal must have shape ({o.horizon}, 4), got {nominal.shape}")
-    sigma = jnp.array([o.speed_sigma, o.speed_sigma, o.position_sigma, o.position_sigma], jnp.float32)
-    noise = jax.random.normal(key, (o.n_samples - 1, o.horizon, 4)) * sigma
-    seqs = jnp.concatenate([nominal[None], nominal[None] + noise])
-    seqs = clip_actions(seqs, cfg, o.speed_cap)
-    states = jax.vmap(prior.rollout_sequence, in_axes=(None, None, None, 0))(model, window, belt_speed, seqs)
-    cost = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, None))(
-        model, states, seqs, target_yaw, cfg, o
-    )
-    cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
-    best = jnp.argmin(cost)
-    st = states[best]
+    sigma0 = jnp.array([o.speed_sigma, o.speed_sigma, o.position_sigma, o.position_sigma], jnp.float32)
+    mean, sigma = nominal, jnp.broadcast_to(sigma0, nominal.shape)
+    best_seq, best_cost, best_states, costs = nominal, jnp.inf, None, []
+    keys = jax.random.split(key, o.iterations) if o.iterations > 1 else [key]
+    for it in range(o.iterations):
+        noise = perturbations(keys[it], o) * sigma
+        seqs = clip_actions(jnp.concatenate([mean[None], mean[None] + noise]), cfg, o.speed_cap)
+        states, cost = evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg, o)
+        costs.append(cost)
+        i = jnp.argmin(cost)
+        better = cost[i] < best_cost
+        best_seq = jnp.where(better, seqs[i], best_seq)
+        best_states = states[i] if best_states is None else jnp.where(better, states[i], best_states)
+        best_cost = jnp.where(better, cost[i], best_cost)
+        mean, sigma = (seqs[i], sigma) if o.update == "best" else _update(seqs, cost, sigma, o)
+    if o.update != "best":  # score the final mean too
+        mean = clip_actions(mean, cfg, o.speed_cap)
+        st_m, c_m = evaluate_sequences(model, window, belt_speed, target_yaw, mean[None], cfg, o)
+        better = c_m[0] < best_cost
+        best_seq, best_states = jnp.where(better, mean, best_seq), jnp.where(better, st_m[0], best_states)
+        best_cost = jnp.where(better, c_m[0], best_cost)
+    if o.gradient_steps > 0:
+        seq_g, c_g = refine_gradient(model, window, belt_speed, target_yaw, best_seq, cfg, o)
+        better = c_g < best_cost
+        best_seq = jnp.where(better, seq_g, best_seq)
+        best_states = jnp.where(better, model.rollout_sequence(window, belt_speed, seq_g), best_states)
+        best_cost = jnp.where(better, c_g, best_cost)
+    cost = jnp.concatenate(costs)
     info = SamplingInfo(
-        nominal=seqs[best],
-        states=st,
+        nominal=best_seq,
+        states=best_states,
         cost=cost,
-        best=best,
-        balance_error=jnp.max(jax.vmap(geometry.balance_error)(st)),
-        yaw_error=st[-1, geometry.YAW] - target_yaw,
+        best=jnp.argmin(cost),
+        balance_error=jnp.max(jax.vmap(geometry.balance_error)(best_states)),
+        yaw_error=best_states[-1, geometry.YAW] - target_yaw,
     )
-    return seqs[best, 0], info
+    return best_seq[0], info
 
 
 def make_sampling_planner(cfg: Config, options: SamplingOptions | None = None, **overrides):
@@ -182,3 +303,15 @@ def make_sampling_planner(cfg: Config, options: SamplingOptions | None = None, *
     if overrides:
         o = dataclasses.replace(o, **overrides)
     return jax.jit(functools.partial(plan, cfg=cfg, o=o))
+
+
+def make(cfg: Config, options: SamplingOptions | None = None) -> planning.Planner:
+    """Predictive sampling behind the planner interface (`planning.Planner`): the plan state is the
+    nominal sequence (H, 4), shifted by one step after each action."""
+    o = options or SamplingOptions()
+
+    def optimize(key, model, obs: planning.Observation, nominal):
+        a, info = plan(key, model, obs.window, obs.belt_speed, obs.target_yaw, nominal, cfg, o)
+        return a, shift_nominal(info.nominal), info
+
+    return planning.Planner("sampling", lambda obs: initial_nominal(cfg, o, obs.belt_speed), jax.jit(optimize))

@@ -255,6 +255,24 @@ def test_normal_loads_balance_weight_and_moments_without_tension(name):
         np.testing.assert_allclose(moment, 0.0, atol=2e-3 * float(model.mass))
 
 
+def test_normal_loads_with_friction_moment_closed_form():
+    """Friction F at the belt surface, h = com_z + half height below the centre of mass, must be balanced
+    by the normal loads: sum N = M g and sum q N = -h F (box axes). Dragged towards -y the uniform box
+    presses harder on its +y side (belt 2); the sum is still M g and no load is negative."""
+    model = prior.make_prior(_uniform(), None, BOX, G)
+    c = prior.polygon_contacts(model, REST)
+    mg = float(model.mass) * G.gravity
+    f = jnp.array([0.0, -0.2 * mg])
+    n = np.asarray(prior.normal_loads(model, c, f))
+    h = float(model.com[2]) + BOX.half_size[2]
+    assert np.all(n >= 0)
+    np.testing.assert_allclose(n.sum(), mg, rtol=1e-4)
+    moment = (n[..., None] * np.asarray(c.offsets)).sum(axis=(0, 1))
+    np.testing.assert_allclose(moment, -h * np.asarray(f), atol=2e-3 * float(model.mass))
+    assert n[1].sum() > n[0].sum() + 0.5  # N: the +y belt (2) carries more
+    np.testing.assert_allclose(prior.normal_loads(model, c, jnp.zeros(2)), prior.normal_loads(model, c), atol=1e-5)
+
+
 def test_normal_loads_per_belt_match_mujoco_at_rest():
     """Reference nobody here wrote: MuJoCo's contact forces on box C resting on the belts (averaged over
     0.1 s after settling) split its weight 18.0 / 60.5 N between belt 1 and belt 2."""

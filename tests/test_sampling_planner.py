@@ -27,18 +27,28 @@ PLAN = sp.make_sampling_planner(CFG, OPTS)
 
 
 def test_rollout_sequence_feeds_predictions_back_step_by_step():
-    """prior.rollout_sequence (used for every rollout) equals predict applied step by step on the window
-    shifted by each prediction, with belt speeds from next_belt_speed."""
-    model = _model("A")
+    """prior.rollout_sequence (used for every rollout) equals the one-step prediction applied step by step
+    on the window shifted by each prediction, with belt speeds from next_belt_speed: from the second step
+    on, starting from the velocity and friction the previous step ended with (carry_velocity, default),
+    or re-derived from the window (carry_velocity=False: exactly `predict` step by step)."""
     acts = jnp.array([[0.12, -0.08, 0.0, 0.004], [0.1, -0.1, 0.0, 0.0], [0.0, 0.0, -0.01, 0.0]], jnp.float32)
-    seq = np.asarray(prior.rollout_sequence(model, WINDOW, jnp.zeros(2), acts))
-    w, b = WINDOW, jnp.zeros(2)
-    for k, a in enumerate(acts):
-        s = prior.predict(model, w, b, a)
-        np.testing.assert_allclose(seq[k], np.asarray(s), atol=1e-6)
-        w, b = jnp.concatenate([w[1:], s[None]]), prior.next_belt_speed(model, b, a)
-    held = prior.rollout(model, WINDOW, jnp.zeros(2), acts[0], 2, brake_steps=1)
-    np.testing.assert_allclose(np.asarray(held[0]), seq[0], atol=1e-6)
+    for carry in (True, False):
+        model = prior.make_prior(
+            massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box), None, CFG.box, G, carry_velocity=carry
+        )
+        seq = np.asarray(prior.rollout_sequence(model, WINDOW, jnp.zeros(2), acts))
+        w, b, u, f = WINDOW, jnp.zeros(2), None, None
+        for k, a in enumerate(acts):
+            s, info = prior.explain(model, w, b, a, u, f)
+            if carry:
+                u, f = info["velocity"], info["friction"]
+            else:
+                np.testing.assert_allclose(np.asarray(s), np.asarray(prior.predict(model, w, b, a)), atol=1e-7)
+            np.testing.assert_allclose(seq[k], np.asarray(s), atol=1e-5)  # m, rad: float32 (scan vs eager)
+            w, b = jnp.concatenate([w[1:], s[None]]), prior.next_belt_speed(model, b, a)
+        np.testing.assert_allclose(seq[0], np.asarray(prior.predict(model, WINDOW, jnp.zeros(2), acts[0])), atol=1e-6)
+        held = prior.rollout(model, WINDOW, jnp.zeros(2), acts[0], 2, brake_steps=1)
+        np.testing.assert_allclose(np.asarray(held[0]), seq[0], atol=1e-6)
 
 
 def test_cost_barrier_starts_at_safe_fraction_of_the_balance_limit():
@@ -129,3 +139,46 @@ def test_support_deficit_hand_computed():
     np.testing.assert_allclose(float(sp.support_deficit(spread, CFG, 0.04)), 0.03, atol=1e-6)
     turned = S0.at[geometry.YAW].set(jnp.pi / 2).at[geometry.P1].set(-0.19)  # now spans y +-0.20
     np.testing.assert_allclose(float(sp.support_deficit(turned, CFG, 0.04)), 0.04 - 0.06, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "update, extra",
+    [("mppi", {}), ("cem", {"iterations": 2}), ("best", {"gradient_steps": 3, "n_knots": 3})],
+)
+def test_planner_updates_never_lose_the_nominal_and_are_deterministic(update, extra):
+    """MPPI, CEM (two rounds) and gradient refinement: the plan's cost under the model is never above the
+    old nominal's (row 0 of the first round), the action is within the limits, the same key gives the
+    same action."""
+    o = sp.SamplingOptions(n_samples=16, horizon=6, update=update, **extra)
+    plan = sp.make_sampling_planner(CFG, o)
+    model = _model("C")
+    nominal = sp.initial_nominal(CFG, o)
+    a1, i1 = plan(jax.random.PRNGKey(1), model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
+    a2, _ = plan(jax.random.PRNGKey(1), model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
+    np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
+    chosen = float(sp.rollout_cost(model, i1.states, i1.nominal, jnp.pi / 2, CFG, o))
+    assert chosen <= float(i1.cost[0]) * (1 + 1e-5)
+    assert np.all(np.abs(np.asarray(a1)[:2]) <= o.speed_cap + 1e-6)
+    assert np.all(np.abs(np.asarray(a1)[2:]) <= G.max_position_step + 1e-6)
+
+
+def test_gradient_refinement_lowers_the_cost_of_a_poor_sequence():
+    """From a sequence that turns the wrong way, Adam steps through the prior lower its cost."""
+    o = sp.SamplingOptions(n_samples=4, horizon=6, gradient_steps=8)
+    model = _model("uniform")
+    bad = jnp.tile(jnp.array([[-0.08, 0.08, 0.0, 0.0]]), (6, 1))
+    c0 = float(sp.rollout_cost(model, model.rollout_sequence(WINDOW, jnp.zeros(2), bad), bad, jnp.pi / 2, CFG, o))
+    seq, c = jax.jit(lambda x: sp.refine_gradient(model, WINDOW, jnp.zeros(2), jnp.pi / 2, x, CFG, o))(bad)
+    assert float(c) < 0.99 * c0
+    assert np.all(np.abs(np.asarray(seq)[:, :2]) <= o.speed_cap + 1e-6)
+
+
+def test_knot_matrix_interpolates_between_knots():
+    m = sp.knot_matrix(5, 3)
+    np.testing.assert_allclose(m.sum(axis=1), 1.0)
+    np.testing.assert_allclose(m[[0, 2, 4]], np.eye(3))
+    np.testing.assert_array_equal(sp.knot_matrix(4, None), np.eye(4))
+    with pytest.raises(ValueError, match="n_knots"):
+        sp.SamplingOptions(horizon=4, n_knots=5)
+    with pytest.raises(ValueError, match="update"):
+        sp.SamplingOptions(update="annealing")

@@ -1,0 +1,298 @@
+"""The paper's experiments as functions that return plain data (the CLI prints them, plots draw them).
+
+`evaluate` is the validation of paper §4.3 and beyond: many random label-safe boxes (random distributions,
+hazardous ones rejected) and random hazardous boxes, one closed-loop episode each, with the outcome of
+every episode, the success rate with a 95 % Wilson interval, false aborts, hazard recall and the balance
+error over time. Boxes and episode keys are derived from one seed, so any episode replays alone
+(`replay`): box j's episode key is `fold_in(key_episodes, j)`, whatever the other boxes are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from collections import Counter
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from boxjax import fileio, massdist
+from boxjax.config import Config
+from boxjax.controller import ControllerConfig, run_episode
+
+HAZARD_FAMILIES = ("gaussian", "items")
+RESULTS_FORMAT, RESULTS_VERSION = "boxjax-evaluation", 1
+
+
+class EvalBoxes(NamedTuple):
+    """The boxes of one evaluation. N = safe + hazardous; the safe ones come first.
+
+    occupancy: (N, nx, ny, nz) float32; total_mass: (N,) kg; hazardous: (N,) bool (as drawn);
+    family: (N,) str, how each box was drawn ("safe", or a hazardous family); keys: (N, 2) uint32 episode
+    keys (raw `jax.random.PRNGKey` data).
+    """
+
+    occupancy: np.ndarray
+    total_mass: np.ndarray
+    hazardous: np.ndarray
+    family: np.ndarray
+    keys: np.ndarray
+
+    def dist(self, j: int) -> massdist.MassDistribution:
+        return massdist.MassDistribution(
+            np.asarray(self.occupancy[j], np.float32), np.asarray(self.total_mass[j], np.float32)
+        )
+
+    def __len__(self) -> int:
+        return int(self.total_mass.shape[0])
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial proportion (sensible at 0 and n, unlike the normal one)."""
+    if n <= 0:
+        return (float("nan"), float("nan"))
+    p = successes / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def sample_safe(key, n: int, cfg: Config) -> list[massdist.MassDistribution]:
+    """n random label-safe distributions (paper §4.3): `massdist.sample` draws with the hazardous ones
+    rejected; draw i uses `fold_in(key, i)`."""
+    out, i = [], 0
+    while len(out) < n:
+        d = massdist.sample(jax.random.fold_in(key, i), cfg.box)
+        i += 1
+        if not bool(massdist.is_hazardous(d, cfg.box)):
+            out.append(jax.tree.map(np.asarray, d))
+    return out
+
+
+def sample_hazard_family(key, n: int, cfg: Config, family: str = "gaussian") -> list[massdist.MassDistribution]:
+    """n hazardous distributions: "gaussian" (`massdist.sample_hazardous`, the family H was trained on) or
+    "items" (`massdist.sample_items_hazardous`: 1-16 occupied voxels inside one outer quarter)."""
+    if family not in HAZARD_FAMILIES:
+        raise ValueError(f"unknown hazardous family {family!r}; choose one of {HAZARD_FAMILIES}")
+    draw = massdist.sample_hazardous if family == "gaussian" else massdist.sample_items_hazardous
+    return [jax.tree.map(np.asarray, draw(jax.random.fold_in(key, i), cfg.box)) for i in range(n)]
+
+
+def make_boxes(cfg: Config, n_safe: int, n_hazardous: int, seed: int, family: str = "gaussian") -> EvalBoxes:
+    """The boxes and episode keys of `evaluate(..., seed)`."""
+    key_safe, key_haz, key_ep = jax.random.split(jax.random.PRNGKey(seed), 3)
+    dists = sample_safe(key_safe, n_safe, cfg) + sample_hazard_family(key_haz, n_hazardous, cfg, family)
+    n = len(dists)
+    keys = np.stack([np.asarray(jax.random.key_data(jax.random.fold_in(key_ep, j))) for j in range(n)])
+    occ = np.stack([d.occupancy for d in dists]) if n else np.zeros((0, *cfg.box.grid), np.float32)
+    return EvalBoxes(
+        occupancy=occ.astype(np.float32),
+        total_mass=np.asarray([float(d.total_mass) for d in dists], np.float32),
+        hazardous=np.asarray([bool(massdist.is_hazardous(d, cfg.box)) for d in dists], bool),
+        family=np.asarray(["safe"] * n_safe + [family] * n_hazardous),
+        keys=keys.astype(np.uint32).reshape(n, 2),
+    )
+
+
+def outcome(summary: dict) -> str:
+    """One word for an episode: "success", "aborted", or the failure reason."""
+    if summary["success"]:
+        return "success"
+    if summary["aborted"]:
+        return "aborted"
+    return str(summary["failed_reason"])
+
+
+def _row(j: int, boxes: EvalBoxes, res, cfg: Config) -> dict:
+    d = boxes.dist(j)
+    props = massdist.mass_properties(d, cfg.box)
+    s = res.summary
+    row = {
+        "index": j,
+        "family": str(boxes.family[j]),
+        "hazardous": bool(boxes.hazardous[j]),
+        "total_mass_kg": float(d.total_mass),
+        "com_cm": [round(100 * float(c), 3) for c in np.asarray(props.com)],
+        "fill": float(np.mean(d.occupancy)),
+        "outcome": outcome(s),
+        "steps": int(s["steps"]),
+        "max_balance_error_m": float(s["max_balance_error_m"]),
+        "lost_exploring": bool(s.get("lost_exploring", False)),
+        "plan_ms_median": s["plan_ms_median"],
+        "wall_s": float(s["wall_s"]),
+    }
+    for k in ("iou", "com_error_cm", "mass_error_kg", "hazard_prob"):
+        if k in s:
+            row[k] = s[k]
+    return row
+
+
+def _median_max(xs) -> dict:
+    xs = [float(x) for x in xs]
+    if not xs:
+        return {"median": None, "max": None}
+    return {"median": float(np.median(xs)), "max": float(np.max(xs))}
+
+
+def summarize(rows: list[dict]) -> dict:
+    """The evaluation's figures from its rows (see `evaluate`)."""
+    safe = [r for r in rows if not r["hazardous"]]
+    haz = [r for r in rows if r["hazardous"]]
+    n_ok = sum(r["outcome"] == "success" for r in safe)
+    lo, hi = wilson_interval(n_ok, len(safe))
+    failures = Counter(r["outcome"] for r in safe if r["outcome"] not in ("success", "aborted"))
+    turned = [r for r in safe if r["outcome"] == "success"]
+    refused = sum(r["outcome"] == "aborted" for r in haz)
+    return {
+        "safe_boxes": len(safe),
+        "safe_success": n_ok,
+        "safe_success_rate": n_ok / len(safe) if safe else None,
+        "safe_success_ci95": [lo, hi] if safe else None,
+        "false_aborts": sum(r["outcome"] == "aborted" for r in safe),
+        "failures": dict(sorted(failures.items())),
+        "lost_exploring": sum(r["lost_exploring"] for r in safe),
+        "hazardous_boxes": len(haz),
+        "hazard_aborted": refused,
+        "hazard_recall": refused / len(haz) if haz else None,
+        "hazard_outcomes": dict(sorted(Counter(r["outcome"] for r in haz).items())),
+        "steps_success": _median_max(r["steps"] for r in turned),
+        "max_balance_error_m": _median_max(r["max_balance_error_m"] for r in safe if r["outcome"] != "aborted"),
+    }
+
+
+class Evaluation(NamedTuple):
+    """What `evaluate` returns: `summary` (plain data; the CLI's JSON), one `rows` dict per box, the
+    boxes, and each episode's balance error over time (`balance`, (T_j + 1,) m, for the plots)."""
+
+    summary: dict
+    rows: list[dict]
+    boxes: EvalBoxes
+    balance: list[np.ndarray]
+
+
+def settings(estimator: str, ctrl: ControllerConfig, seed: int, family: str) -> dict:
+    """What an evaluation ran with (enough to rebuild the same episodes)."""
+    c = dataclasses.asdict(ctrl)
+    return {"estimator": estimator, "seed": seed, "hazard_family": family, "controller": json.loads(
+        json.dumps(c, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
+    )}
+
+
+def evaluate(
+    cfg: Config,
+    n_safe: int,
+    n_hazardous: int = 0,
+    seed: int = 0,
+    *,
+    estimator: str = "oracle",
+    ctrl: ControllerConfig = ControllerConfig(),
+    family: str = "gaussian",
+    progress: bool = True,
+    estimator_fn: Any = None,
+) -> Evaluation:
+    """Run one closed-loop episode on each of n_safe random label-safe boxes and n_hazardous hazardous
+    boxes (paper §4.3). Every episode ends with an outcome: success, aborted (refused after exploring),
+    or a failure reason (task.REASONS); a box lost while exploring is a failure, never an exception.
+
+    Args:
+      estimator: "oracle" (the true distribution) or "learned" (the shipped H, or `estimator_fn`).
+      ctrl: the controller (planner, prior variant, options). family: the hazardous boxes' family.
+    """
+    if n_safe < 0 or n_hazardous < 0 or n_safe + n_hazardous < 1:
+        raise ValueError(f"need at least one box and no negative counts, got {n_safe} safe, {n_hazardous} hazardous")
+    if estimator not in ("oracle", "learned"):
+        raise ValueError(f"unknown estimator {estimator!r}; choose 'oracle' or 'learned'")
+    est: Any = "oracle"
+    if estimator == "learned":
+        from boxjax.controller import learned_estimator
+
+        est = estimator_fn or learned_estimator(cfg)
+    t0 = time.perf_counter()
+    boxes = make_boxes(cfg, n_safe, n_hazardous, seed, family)
+    rows, balance = [], []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(boxes), desc=f"evaluate ({estimator}, {ctrl.planner})", unit="box", leave=False)
+    for j in range(len(boxes)):
+        res = run_episode(cfg, boxes.dist(j), jax.random.wrap_key_data(boxes.keys[j]), estimator=est, ctrl=ctrl)
+        rows.append(_row(j, boxes, res, cfg))
+        balance.append(np.asarray(res.trace.balance_error, np.float32))
+        if bar is not None:
+            ok = sum(r["outcome"] == "success" for r in rows if not r["hazardous"])
+            bar.set_postfix_str(f"safe turned {ok}/{sum(not r['hazardous'] for r in rows)}")
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    summary = {**summarize(rows), **settings(estimator, ctrl, seed, family), "wall_s": time.perf_counter() - t0}
+    return Evaluation(summary, rows, boxes, balance)
+
+
+def write_evaluation(ev: Evaluation, out_dir, command: str | None = None) -> dict[str, str]:
+    """Write `out_dir/evaluation.json` (summary, settings, one row per box) and `out_dir/boxes.npz` (the
+    boxes, their episode keys and balance traces), each atomically. Returns the paths."""
+    os.makedirs(out_dir, exist_ok=True)
+    json_path = os.path.join(out_dir, "evaluation.json")
+    npz_path = os.path.join(out_dir, "boxes.npz")
+    lengths = np.asarray([len(b) for b in ev.balance], np.int32)
+    pad = np.full((len(ev.balance), int(lengths.max(initial=1))), np.nan, np.float32)
+    for j, b in enumerate(ev.balance):
+        pad[j, : len(b)] = b
+    arrays = {**{k: np.asarray(v) for k, v in ev.boxes._asdict().items()}, "balance": pad, "balance_len": lengths}
+    arrays["family"] = arrays["family"].astype("U16")
+    fileio.write_npz_with_meta(npz_path, arrays, {"summary": ev.summary}, RESULTS_FORMAT, RESULTS_VERSION)
+    doc = {"command": command, "summary": ev.summary, "rows": ev.rows}
+    with fileio.atomic_path(json_path, suffix=".json") as tmp:
+        with open(tmp, "w") as f:
+            json.dump(doc, f, indent=1)
+    return {"evaluation": json_path, "boxes": npz_path}
+
+
+class EvaluationFileError(ValueError):
+    """An evaluation output is missing, corrupt or of another format."""
+
+
+def load_boxes(out_dir) -> tuple[EvalBoxes, dict]:
+    """(boxes, summary) of an evaluation written by `write_evaluation`."""
+    path = os.path.join(out_dir, "boxes.npz") if os.path.isdir(out_dir) else out_dir
+    arrays, meta = fileio.read_npz_with_meta(
+        path, EvaluationFileError, "evaluation boxes", RESULTS_FORMAT, RESULTS_VERSION
+    )
+    boxes = EvalBoxes(**{k: arrays[k] for k in EvalBoxes._fields})
+    return boxes, meta["summary"]
+
+
+def controller_from_settings(st: dict) -> ControllerConfig:
+    """The ControllerConfig an evaluation ran with (its `settings(...)["controller"]`)."""
+    c = dict(st["controller"])
+    if c.get("sampling") is not None:
+        from boxjax.sampling_planner import SamplingOptions
+
+        c["sampling"] = SamplingOptions(**c["sampling"])
+    known = {f.name for f in dataclasses.fields(ControllerConfig)}
+    unknown = sorted(set(c) - known)
+    if unknown:
+        raise EvaluationFileError(f"evaluation was run with controller options this boxjax lacks: {unknown}")
+    return ControllerConfig(**c)
+
+
+def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
+    """Re-run box `index` of a written evaluation with its own episode key, estimator and controller: the
+    same episode. Returns (controller.EpisodeResult, the evaluation's row for that box)."""
+    boxes, summary = load_boxes(out_dir)
+    if not 0 <= index < len(boxes):
+        raise ValueError(f"--index {index} is outside the evaluation's {len(boxes)} boxes (0..{len(boxes) - 1})")
+    est: Any = "oracle"
+    if summary["estimator"] == "learned":
+        from boxjax.controller import learned_estimator
+
+        est = estimator_fn or learned_estimator(cfg)
+    ctrl = controller_from_settings(summary)
+    res = run_episode(cfg, boxes.dist(index), jax.random.wrap_key_data(boxes.keys[index]), estimator=est, ctrl=ctrl)
+    return res, summary

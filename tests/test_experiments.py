@@ -1,0 +1,120 @@
+"""`boxjax evaluate` (paper §4.3 validation): intervals, boxes from a seed, outcomes that never raise, the
+files it writes and the replay of one box, and bad input at the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from boxjax import experiments, massdist
+from boxjax.cli import main
+from boxjax.config import DEFAULT, TaskConfig
+from boxjax.controller import ControllerConfig, run_episode
+
+CFG = DEFAULT
+
+
+def test_wilson_interval_reference_values():
+    """Against the closed form: p = 0.5, n = 100 -> 0.5 -+ 0.0962 (1.96 * sqrt(0.25 / 100) / (1 + 1.96^2 /
+    100)); 0 / 10 -> [0, z^2 / (n + z^2)] = [0, 0.2775]; n / n mirrors it."""
+    lo, hi = experiments.wilson_interval(50, 100)
+    np.testing.assert_allclose([lo, hi], [0.4038, 0.5962], atol=1e-4)
+    np.testing.assert_allclose(experiments.wilson_interval(0, 10), [0.0, 0.2775], atol=1e-4)
+    np.testing.assert_allclose(experiments.wilson_interval(10, 10), [0.7225, 1.0], atol=1e-4)
+
+
+def test_boxes_come_from_the_seed_and_follow_their_labels():
+    a = experiments.make_boxes(CFG, 6, 3, seed=4)
+    b = experiments.make_boxes(CFG, 6, 3, seed=4)
+    np.testing.assert_array_equal(a.occupancy, b.occupancy)
+    np.testing.assert_array_equal(a.keys, b.keys)
+    assert not a.hazardous[:6].any() and a.hazardous[6:].all()
+    assert list(a.family) == ["safe"] * 6 + ["gaussian"] * 3
+    # Box j's episode key does not depend on how many boxes there are (so any box replays alone).
+    c = experiments.make_boxes(CFG, 2, 0, seed=4)
+    np.testing.assert_array_equal(c.keys, a.keys[:2])
+    assert not np.array_equal(experiments.make_boxes(CFG, 6, 0, seed=5).occupancy, a.occupancy[:6])
+
+
+def test_summary_counts_and_interval():
+    rows = [
+        {"hazardous": False, "outcome": "success", "steps": 200, "max_balance_error_m": 0.01, "lost_exploring": False},
+        {"hazardous": False, "outcome": "unbalanced", "steps": 90, "max_balance_error_m": 0.05, "lost_exploring": False},
+        {"hazardous": False, "outcome": "aborted", "steps": 45, "max_balance_error_m": 0.002, "lost_exploring": False},
+        {"hazardous": True, "outcome": "aborted", "steps": 45, "max_balance_error_m": 0.01, "lost_exploring": False},
+        {"hazardous": True, "outcome": "step_cap", "steps": 600, "max_balance_error_m": 0.03, "lost_exploring": False},
+    ]
+    s = experiments.summarize(rows)
+    assert (s["safe_boxes"], s["safe_success"], s["false_aborts"]) == (3, 1, 1)
+    assert s["failures"] == {"unbalanced": 1}
+    assert (s["hazardous_boxes"], s["hazard_aborted"], s["hazard_recall"]) == (2, 1, 0.5)
+    assert s["safe_success_ci95"] == list(experiments.wilson_interval(1, 3))
+    assert s["max_balance_error_m"] == pytest.approx({"median": 0.03, "max": 0.05})  # refused ones not counted
+
+
+def test_a_box_lost_while_exploring_is_an_outcome_not_an_exception():
+    """With a 2 mm balance limit the box is lost inside the fixed exploration; the estimator must not be
+    asked (a learned H needs the full 45 steps) and the episode ends as a failure."""
+    cfg = CFG.replace(task=TaskConfig(balance_limit=0.002))
+
+    def estimator(exploration):
+        raise AssertionError("the estimator was called on a box lost while exploring")
+
+    res = run_episode(cfg, massdist.named("B", cfg.box), jax.random.PRNGKey(0), estimator=estimator)
+    s = res.summary
+    assert s["lost_exploring"] and not s["success"] and not s["aborted"]
+    assert s["failed_reason"] == "unbalanced" and s["exploration_steps"] < 45
+    assert res.belief is None
+
+
+def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path, capsys):
+    out = tmp_path / "ev"
+    png = tmp_path / "ev.png"
+    argv = ["evaluate", "--boxes", "2", "--hazardous", "1", "--seed", "3", "--out", str(out), "--plot", str(png)]
+    assert main([*argv, "--quiet", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for k in ("safe_boxes", "safe_success", "safe_success_rate", "safe_success_ci95", "false_aborts", "failures",
+              "hazardous_boxes", "hazard_aborted", "steps_success", "max_balance_error_m", "wall_s"):
+        assert k in summary, k
+    assert summary["safe_boxes"] == 2 and summary["hazardous_boxes"] == 1
+    doc = json.loads((out / "evaluation.json").read_text())
+    assert len(doc["rows"]) == 3 and doc["summary"]["seed"] == 3
+    assert png.stat().st_size > 10_000
+    row = doc["rows"][1]
+    assert main(["rotate", "--replay", str(out), "--index", "1", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert rep["outcome"] == row["outcome"] and rep["steps"] == row["steps"]
+    assert rep["max_balance_error_m"] == pytest.approx(row["max_balance_error_m"], abs=1e-7)
+    # An existing non-empty --out is not overwritten without --force.
+    assert main([*argv, "--quiet"]) == 2
+    assert "--force" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["evaluate", "--boxes", "0"], "--boxes"),
+        (["evaluate", "--boxes", "3", "--hazardous", "-1"], "--hazardous"),
+        (["evaluate", "--boxes", "3", "--samples", "20"], "paper planner"),
+        (["rotate", "--index", "2"], "--replay"),
+        (["rotate", "--replay", "/nonexistent/dir", "--index", "0"], "no such"),
+    ],
+)
+def test_bad_input_exits_2_naming_the_problem(argv, message, capsys):
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_unknown_planner_is_refused_by_argparse(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", "--planner", "genetic"])
+    assert e.value.code == 2
+
+
+def test_controller_settings_round_trip():
+    ctrl = ControllerConfig(planner="paper", rule="lexicographic", n_samples=30)
+    st = json.loads(json.dumps(experiments.settings("oracle", ctrl, 1, "gaussian")))
+    assert experiments.controller_from_settings(st) == ctrl
