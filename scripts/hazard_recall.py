@@ -14,7 +14,7 @@ default). Diagnostics in physical terms: H's centre-of-mass error on each family
 true centre of mass inside its region, and what a rule on the TRUE centre of mass would abort.
 
   .venv/bin/python scripts/hazard_recall.py --seed 0 --hazardous 100 --safe 300 \
-      [--weights FILE] [--items-any 300]
+      [--items-any 300] [--weights FILE ...]
 
 Prints one JSON object (last line).
 """
@@ -64,46 +64,33 @@ def _pct(x, qs=(50, 95, 100)) -> dict:
     return {f"p{q}": round(float(np.percentile(x, q)), 2) for q in qs} if x.size else {}
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--hazardous", type=int, default=100, help="hazardous boxes of EACH family")
-    ap.add_argument("--safe", type=int, default=300, help="label-safe boxes")
-    ap.add_argument("--items-any", type=int, default=0, help="boxes of massdist.sample_items (any label)")
-    ap.add_argument("--weights", help="estimator checkpoint (default: the shipped H)")
-    ap.add_argument("--show-misses", type=int, default=3, help="explanations of this many missed boxes")
-    args = ap.parse_args(argv)
-    cfg = DEFAULT
-    box = cfg.box
-    t0 = time.perf_counter()
-    if args.weights:
-        model = E.load(args.weights, expected_box_config=box)
-        _check_exploration(model, cfg, args.weights)
-    else:
-        model = default_estimator(cfg)
+def _operating_points(score, family, haz) -> dict:
+    """For a score where higher = more hazardous (the head's probability, the physics margin): the recall
+    reached at the threshold that aborts at most 2 % of the safe boxes, and the safe boxes a threshold
+    low enough to refuse EVERY hazardous box of a family would abort (oracle thresholds, for information)."""
+    safe = score[family == "safe"]
+    out = {}
+    if safe.size:
+        thr = float(np.quantile(safe, 0.98, method="higher"))
+        out["threshold_at_2pct_false_aborts"] = round(thr, 4)
+        for f in ("gaussian", "items"):
+            m = family == f
+            if m.any():
+                out[f"{f}_recall_at_2pct_false_aborts"] = _rate(score[m] > thr)
+                out[f"false_abort_rate_to_refuse_every_{f}"] = _rate(safe >= score[m].min())
+    return out
 
-    key_g, key_i, key_s, key_a = jax.random.split(jax.random.key(args.seed), 4)
-    fams = {
-        "gaussian": _draw(massdist.sample_hazardous, key_g, args.hazardous, box),
-        "items": _draw(massdist.sample_items_hazardous, key_i, args.hazardous, box),
-        "safe": _safe(key_s, args.safe, box),
-    }
-    if args.items_any:
-        fams["items_any"] = _draw(massdist.sample_items, key_a, args.items_any, box)
-    family = np.concatenate([[f] * int(np.shape(d.total_mass)[0]) for f, d in fams.items()])
-    dists = jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *fams.values())
-    t1 = time.perf_counter()
-    data = ds.simulate(cfg, dists, progress=False, chunk=500)
-    sim_s = time.perf_counter() - t1
+
+def assess_estimator(model, data, family, truth, cfg, show_misses: int = 3) -> dict:
+    """Rules, physical diagnostics and a few explained misses of one estimator on simulated boxes."""
+    box = cfg.box
     ev = jax.tree.map(
         np.asarray, hazard.evidence_batch(model, jnp.asarray(data["traj"]), jnp.asarray(data["final"]))
     )
-    truth = massdist.MassDistribution(jnp.asarray(data["occupancy"]), jnp.asarray(data["total_mass"]))
     true_com = np.asarray(jax.vmap(lambda d: massdist.mass_properties(d, box).com)(truth))
     true_region = np.asarray(jax.vmap(massdist.hazard_region, in_axes=(0, None))(truth, box))
     haz = np.asarray(data["hazardous"], bool)
-    # Boxes whose balance error passed the 4 cm limit during the exploration itself (an episode fails there).
-    lost = np.asarray(data["max_balance_error"]) > cfg.task.balance_limit
+    fams = list(dict.fromkeys(family.tolist()))
 
     decisions = {r: hazard.decide_batch(model, ev, r) for r in hazard.HAZARD_RULES}
     rules = {}
@@ -122,6 +109,10 @@ def main(argv=None) -> dict:
                 row[f"{f}_refused"] = int(h[m].sum())
                 row[f"{f}_recall"] = _rate(h[m])
         rules[r] = row
+    operating = {
+        "head_probability": _operating_points(np.asarray(ev.head), family, haz),
+        "physics_margin": _operating_points(decisions["physics"]["margin"], family, haz),
+    }
 
     # Physical diagnostics: centre-of-mass error (cm) and the true centre of mass's depth inside its region.
     ax, sg = np.array([0, 0, 1, 1]), np.array([-1.0, 1.0, -1.0, 1.0])
@@ -136,10 +127,9 @@ def main(argv=None) -> dict:
         if hm.any():
             i = np.where(hm)[0]
             r = true_region[i]
-            d_true = 100 * true_depth[i, r]
-            d_est = 100 * ev.depth[i, r]
-            row["true_com_depth_in_region_cm"] = _pct(d_true, (0, 5, 50))
-            row["est_com_depth_in_region_cm"] = _pct(d_est, (0, 5, 50))
+            row["true_com_depth_in_region_cm"] = _pct(100 * true_depth[i, r], (0, 5, 50))
+            row["est_com_depth_in_region_cm"] = _pct(100 * ev.depth[i, r], (0, 5, 50))
+            row["com_error_along_region_axis_cm"] = _pct(100 * np.abs(ev.depth[i, r] - true_depth[i, r]))
             row["est_mass_fraction_in_region"] = {
                 f"p{q}": round(float(np.percentile(ev.fraction[i, r], q)), 3) for q in (0, 5, 50)
             }
@@ -147,37 +137,88 @@ def main(argv=None) -> dict:
             row["est_max_mass_fraction_in_a_region"] = {
                 f"p{q}": round(float(np.percentile(ev.fraction[m].max(1), q)), 3) for q in (50, 95, 98, 100)
             }
-            # A rule on the TRUE centre of mass that refuses every hazardous box would abort these safe boxes:
+            # What a rule on the TRUE centre of mass that refuses every hazardous box would abort:
             row["true_com_in_a_quarter_rate"] = _rate((true_depth[m] >= 0).any(1))
-            min_haz = min(
-                float(np.min(true_depth[np.where(family == g)[0], true_region[family == g]]))
-                for g in ("gaussian", "items")
-                if np.any(family == g)
-            )
-            row["true_com_as_deep_as_shallowest_hazardous_rate"] = _rate((true_depth[m] >= min_haz).any(1))
-            row["shallowest_hazardous_true_depth_cm"] = round(100 * min_haz, 2)
+            hz_idx = np.where(haz & np.isin(family, ("gaussian", "items")))[0]
+            if hz_idx.size:
+                min_haz = float(np.min(true_depth[hz_idx, true_region[hz_idx]]))
+                row["shallowest_hazardous_true_depth_cm"] = round(100 * min_haz, 2)
+                row["true_com_as_deep_as_shallowest_hazardous_rate"] = _rate(
+                    (true_depth[m] >= min_haz).any(1)
+                )
         diag[f] = row
 
     misses = {}
     for f in ("gaussian", "items"):
-        i = np.where((family == f) & ~decisions["physics"]["hazardous"])[0][: args.show_misses]
+        idx = np.where((family == f) & ~decisions["physics"]["hazardous"])[0][:show_misses]
         texts = []
-        for j in i:
+        for j in idx:
             one = jax.tree.map(lambda a, j=j: a[j], ev)
             true = massdist.MassDistribution(truth.occupancy[j], truth.total_mass[j])
             text = hazard.explain(model, one, hazard.decide(model, one))
             texts.append(text + " Truth: " + massdist.describe(true, box).replace("\n", "; "))
         misses[f] = texts
-    result = {
-        "seed": args.seed,
-        "weights": args.weights or "boxjax/data/estimator.npz",
-        "boxes": {f: int((family == f).sum()) for f in fams},
+    return {
         "hazard_threshold": model.hazard_threshold,
         "physics_rule": dataclasses.asdict(hazard.DEFAULT_RULE),
         "rules": rules,
+        "operating_points": operating,
         "diagnostics": diag,
         "missed_by_physics_rule": misses,
+    }
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--hazardous", type=int, default=100, help="hazardous boxes of EACH family")
+    ap.add_argument("--safe", type=int, default=300, help="label-safe boxes")
+    ap.add_argument("--items-any", type=int, default=0, help="boxes of massdist.sample_items (any label)")
+    ap.add_argument(
+        "--weights",
+        nargs="*",
+        default=[],
+        help="estimator checkpoints, all on the same boxes (default: shipped H)",
+    )
+    ap.add_argument("--show-misses", type=int, default=3, help="explanations of this many missed boxes")
+    args = ap.parse_args(argv)
+    cfg = DEFAULT
+    box = cfg.box
+    t0 = time.perf_counter()
+    models = {}
+    for path in args.weights or [None]:
+        if path is None:
+            models["boxjax/data/estimator.npz"] = default_estimator(cfg)
+        else:
+            models[path] = E.load(path, expected_box_config=box)
+            _check_exploration(models[path], cfg, path)
+
+    key_g, key_i, key_s, key_a = jax.random.split(jax.random.key(args.seed), 4)
+    fams = {
+        "gaussian": _draw(massdist.sample_hazardous, key_g, args.hazardous, box),
+        "items": _draw(massdist.sample_items_hazardous, key_i, args.hazardous, box),
+        "safe": _safe(key_s, args.safe, box),
+    }
+    if args.items_any:
+        fams["items_any"] = _draw(massdist.sample_items, key_a, args.items_any, box)
+    family = np.concatenate([[f] * int(np.shape(d.total_mass)[0]) for f, d in fams.items()])
+    dists = jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *fams.values())
+    t1 = time.perf_counter()
+    data = ds.simulate(cfg, dists, progress=False, chunk=500)
+    sim_s = time.perf_counter() - t1
+    truth = massdist.MassDistribution(jnp.asarray(data["occupancy"]), jnp.asarray(data["total_mass"]))
+    # Boxes whose balance error passed the 4 cm limit during the exploration itself (an episode fails there).
+    lost = np.asarray(data["max_balance_error"]) > cfg.task.balance_limit
+    haz = np.asarray(data["hazardous"], bool)
+    result = {
+        "seed": args.seed,
+        "boxes": {f: int((family == f).sum()) for f in fams},
+        "items_any_hazardous": int((haz & (family == "items_any")).sum()),
         "explore_balance_exceeded": {f: int(lost[family == f].sum()) for f in fams},
+        "estimators": {
+            name: assess_estimator(m, data, family, truth, cfg, args.show_misses)
+            for name, m in models.items()
+        },
         "simulate_s": round(sim_s, 1),
         "total_s": round(time.perf_counter() - t0, 1),
     }
