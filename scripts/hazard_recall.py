@@ -81,6 +81,33 @@ def _operating_points(score, family, haz) -> dict:
     return out
 
 
+def _moments_fit_a_quarter(truth, box) -> np.ndarray:
+    """(B,) bool: the TRUE centre of mass and inertia along a quarter's axis are consistent with all the
+    mass inside that quarter. A mass distribution on [lo, hi] with mean mu and variance s^2 exists iff
+    s^2 <= (hi - mu)(mu - lo) (Bhatia-Davis); the variance comes from the inertia tensor,
+    sum m x^2 = tr(I) / 2 - I_xx (voxels as solid cuboids, so the support is the quarter itself). Every
+    hazardous box passes. A rule that sees only these two moments per axis, exactly, and never misses a
+    hazardous box must refuse every box that passes; the rest of the tensor (and the voxel grid) can rule
+    out some of them, so the share of safe boxes passing is an upper bound for a rule on the exact tensor."""
+    props = jax.vmap(lambda d: massdist.mass_properties(d, box))(truth)
+    mass, com, inertia = (np.asarray(a, np.float64) for a in props)
+    second = (
+        np.trace(inertia, axis1=1, axis2=2)[:, None] / 2 - np.diagonal(inertia, axis1=1, axis2=2)
+    ) / mass[:, None]
+    hx, hy, _ = box.half_size
+    lx, ly, _ = box.size
+    fits = []
+    for axis, lo, hi in (
+        (0, -hx, -hx + lx / 4),
+        (0, hx - lx / 4, hx),
+        (1, -hy, -hy + ly / 4),
+        (1, hy - ly / 4, hy),
+    ):
+        mu, var = com[:, axis], second[:, axis]
+        fits.append((mu >= lo) & (mu <= hi) & (var <= (hi - mu) * (mu - lo) + 1e-9))
+    return np.any(fits, axis=0)
+
+
 def assess_estimator(model, data, family, truth, cfg, show_misses: int = 3) -> dict:
     """Rules, physical diagnostics and a few explained misses of one estimator on simulated boxes."""
     box = cfg.box
@@ -139,6 +166,7 @@ def assess_estimator(model, data, family, truth, cfg, show_misses: int = 3) -> d
             }
             # What a rule on the TRUE centre of mass that refuses every hazardous box would abort:
             row["true_com_in_a_quarter_rate"] = _rate((true_depth[m] >= 0).any(1))
+            row["true_moments_consistent_with_a_quarter_rate"] = _rate(_moments_fit_a_quarter(truth, box)[m])
             hz_idx = np.where(haz & np.isin(family, ("gaussian", "items")))[0]
             if hz_idx.size:
                 min_haz = float(np.min(true_depth[hz_idx, true_region[hz_idx]]))
