@@ -102,3 +102,16 @@ def test_named_boxes_through_exploration_and_H(model):
 def test_learned_estimator_rejects_an_unknown_hazard_rule():
     with pytest.raises(ValueError, match="hazard rule"):
         controller.learned_estimator(DEFAULT, hazard_rule="vibes")
+
+
+def test_learned_estimator_explains_its_refusal_physically():
+    from boxjax import explore
+    from boxjax.sim import native
+
+    out = native.rollout(DEFAULT, [massdist.named("D", BOX)], explore.exploration_actions(DEFAULT))
+    exploration = {"s": out["s"][0], "belt_speed": out["belt_speed"][0], "actions": out["actions"][0]}
+    est = controller.learned_estimator(DEFAULT)(exploration)
+    assert est["hazardous"] and est["hazard_rule"] == "physics" and est["hazard_region"] == "U4"
+    assert "centre of mass" in est["hazard_explanation"] and "U4" in est["hazard_explanation"]
+    head = controller.learned_estimator(DEFAULT, hazard_rule="head")(exploration)
+    assert head["hazardous"] and "hazard_explanation" not in head
