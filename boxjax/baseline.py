@@ -403,6 +403,9 @@ def make_adapter(epochs: int = 1, seed: int = 0):
 
 
 def _adapter(model, data, epochs, seed):
+    inner = getattr(model, "model", None)  # a wrapper of W (planning.DriftCorrected): adapt W inside it
+    if not isinstance(model, BlackBoxModel) and isinstance(inner, BlackBoxModel):
+        return dataclasses.replace(model, model=adapt(inner, data, epochs=epochs, seed=seed))
     return adapt(model, data, epochs=epochs, seed=seed)
 
 
