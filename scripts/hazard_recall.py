@@ -108,6 +108,82 @@ def _moments_fit_a_quarter(truth, box) -> np.ndarray:
     return np.any(fits, axis=0)
 
 
+def moment_ceiling(seed: int, n_train: int, n_test: int, cfg, epochs: int = 40) -> dict:
+    """What the EXACT centre of mass and inertia can decide: an MLP (9 -> 256 x 3 -> 1, AdamW, BCE) from
+    the centre of mass and the inertia tensor per unit mass (no voxels) to the paper's label, trained on
+    fresh draws of every family (n_train `sample`, n_train / 4 each of `sample_hazardous`,
+    `sample_items_hazardous`, `sample_items`) and tested on n_test more. No simulation: this is the
+    information the simulated box carries (a rigid body), not what H extracts from 45 steps of it."""
+    import optax
+
+    from boxjax import mlp
+
+    box = cfg.box
+
+    def feats(d):
+        p = jax.vmap(lambda x: massdist.mass_properties(x, box))(d)
+        per_mass = p.inertia / p.mass[:, None, None]
+        iu = jnp.triu_indices(3)
+        x = jnp.concatenate([p.com / 0.1, per_mass[:, iu[0], iu[1]] / 0.003], axis=1)
+        return np.asarray(x), np.asarray(jax.vmap(massdist.is_hazardous, in_axes=(0, None))(d, box))
+
+    def draw_all(key, n):
+        k = jax.random.split(key, 4)
+        samplers = (
+            massdist.sample,
+            massdist.sample_hazardous,
+            massdist.sample_items_hazardous,
+            massdist.sample_items,
+        )
+        names = ("sample", "gaussian", "items", "items_any")
+        sizes = (n, n // 4, n // 4, n // 4)
+        parts = [feats(_draw(f, kk, m, box)) for f, kk, m in zip(samplers, k, sizes, strict=True)]
+        xs, ys = [p[0] for p in parts], [p[1] for p in parts]
+        fam = np.concatenate([[nm] * m for nm, m in zip(names, sizes, strict=True)])
+        return np.concatenate(xs), np.concatenate(ys), fam
+
+    key_tr, key_te, key_init = jax.random.split(jax.random.fold_in(jax.random.key(seed), 99), 3)
+    x_tr, y_tr, _ = draw_all(key_tr, n_train)
+    x_te, y_te, fam = draw_all(key_te, n_test)
+    net = mlp.init(key_init, (x_tr.shape[1], 256, 256, 256, 1))
+    opt = optax.adamw(1e-3)
+    state = opt.init(net)
+
+    def loss(net, x, y):
+        logits = jax.vmap(lambda v: mlp.apply(net, v)[0])(x)
+        return jnp.mean(optax.sigmoid_binary_cross_entropy(logits, y))
+
+    @jax.jit
+    def step(net, state, x, y):
+        g = jax.grad(loss)(net, x, y)
+        u, state = opt.update(g, state, net)
+        return optax.apply_updates(net, u), state
+
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    for _ in range(epochs):
+        perm = rng.permutation(len(x_tr))
+        for i in range(0, len(perm) - 255, 256):
+            j = perm[i : i + 256]
+            net, state = step(net, state, jnp.asarray(x_tr[j]), jnp.asarray(y_tr[j], jnp.float32))
+    score = np.asarray(jax.vmap(lambda v: mlp.apply(net, v)[0])(jnp.asarray(x_te)))
+    safe = score[(fam == "sample") & ~y_te]
+    thr = float(np.quantile(safe, 0.98, method="higher"))
+    out = {
+        "train_boxes": int(len(x_tr)),
+        "test_safe_boxes": int(safe.size),
+        "train_s": round(time.perf_counter() - t0, 1),
+    }
+    for f in ("gaussian", "items"):
+        m = fam == f
+        out[f"{f}_recall_at_2pct_false_aborts"] = _rate(score[m] > thr)
+        out[f"false_abort_rate_to_refuse_every_{f}"] = _rate(safe >= score[m].min())
+    m = fam == "items_any"
+    out["items_any_recall_at_that_threshold"] = _rate(score[m & y_te] > thr)
+    out["items_any_false_abort_rate_at_that_threshold"] = _rate(score[m & ~y_te] > thr)
+    return out
+
+
 def assess_estimator(model, data, family, truth, cfg, show_misses: int = 3) -> dict:
     """Rules, physical diagnostics and a few explained misses of one estimator on simulated boxes."""
     box = cfg.box
@@ -209,6 +285,9 @@ def main(argv=None) -> dict:
         help="estimator checkpoints, all on the same boxes (default: shipped H)",
     )
     ap.add_argument("--show-misses", type=int, default=3, help="explanations of this many missed boxes")
+    ap.add_argument(
+        "--ceiling-boxes", type=int, default=0, help="also fit the exact-moment classifier on this many boxes"
+    )
     args = ap.parse_args(argv)
     cfg = DEFAULT
     box = cfg.box
@@ -248,6 +327,15 @@ def main(argv=None) -> dict:
             for name, m in models.items()
         },
         "simulate_s": round(sim_s, 1),
+        **(
+            {
+                "exact_moment_ceiling": moment_ceiling(
+                    args.seed, args.ceiling_boxes, args.ceiling_boxes // 5, cfg
+                )
+            }
+            if args.ceiling_boxes
+            else {}
+        ),
         "total_s": round(time.perf_counter() - t0, 1),
     }
     print(json.dumps(result))
