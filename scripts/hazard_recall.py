@@ -11,10 +11,12 @@ Each box runs the fixed 45-step exploration open loop (`dataset.simulate`, nativ
 H's ensemble gives its evidence (`boxjax.hazard.evidence_batch`) and each rule decides: "head" (H's hazard
 head alone, its calibrated threshold), "physics_only" and "physics" (physics or head; the controller's
 default). Diagnostics in physical terms: H's centre-of-mass error on each family against the depth of the
-true centre of mass inside its region, and what a rule on the TRUE centre of mass would abort.
+true centre of mass inside its region, and what a rule on the TRUE centre of mass (or its first two moments
+along the quarter's axis) would abort. `--ceiling-boxes N` also fits a classifier on the EXACT centre of
+mass and inertia tensor (`moment_ceiling`, no simulation): what the rigid body's physics can decide at all.
 
   .venv/bin/python scripts/hazard_recall.py --seed 0 --hazardous 100 --safe 300 \
-      [--items-any 300] [--weights FILE ...]
+      [--items-any 300] [--weights FILE ...] [--ceiling-boxes 40000]
 
 Prints one JSON object (last line).
 """
