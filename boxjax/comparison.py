@@ -129,6 +129,38 @@ def compare(
     }
 
 
+def random_safe(cfg: Config = DEFAULT, n: int = 30, seed: int = 0, methods=METHODS, model=None,
+                adapt_every: int = 20, adapt_epochs: int = 1, jsonl: str | None = None,
+                progress: bool = True) -> list[dict]:
+    """Beyond the paper: both methods on the first `n` random label-safe boxes of `boxjax evaluate
+    --seed SEED` (`experiments.make_boxes`, the same boxes and episode keys), one episode each. Rows as
+    `compare`'s, box = "safe<j>"; appended to `jsonl` (one JSON object per line) as they finish."""
+    import json
+
+    from tqdm.auto import tqdm
+
+    from boxjax import experiments
+
+    boxes = experiments.make_boxes(cfg, n, 0, seed)
+    model = baseline.default_model(cfg.gripper) if model is None and "blackbox" in methods else model
+    est = learned_estimator(cfg) if "prior" in methods else None
+    adapter = baseline.make_adapter(adapt_epochs) if adapt_every > 0 and adapt_epochs > 0 else None
+    w_ctrl = ControllerConfig(explore=False, adapt_every=adapt_every if adapter else 0)
+    rows = []
+    for j in tqdm(range(len(boxes)), desc="random safe boxes", disable=not progress, leave=False):
+        key = jax.numpy.asarray(boxes.keys[j])
+        for m in methods:
+            if m == "prior":
+                res = run_episode(cfg, boxes.dist(j), key, estimator=est)
+            else:
+                res = run_episode(cfg, boxes.dist(j), key, ctrl=w_ctrl, model=model, adapter=adapter)
+            rows.append(_row(m, f"safe{j}", seed, res.summary))
+            if jsonl:
+                with open(jsonl, "a") as f:
+                    f.write(json.dumps(rows[-1]) + "\n")
+    return rows
+
+
 def table(rows: list[dict]) -> list[dict]:
     """Per (box, method): success ratio, refusals, mean steps over successes, mean wall time per episode,
     mean adaptation time per episode and per epoch, worst balance error; beside the paper's numbers."""

@@ -195,3 +195,38 @@ def test_cli_refuses_a_wrong_checkpoint(linear_model, tmp_path, capsys):
     assert cli.main(["rotate", "--model", "blackbox", "--model-weights", str(tmp_path / "corrupt.npz")]) == 2
     assert "W checkpoint" in capsys.readouterr().err
     del path
+
+
+def test_comparison_table_aggregates_rows():
+    from boxjax import comparison
+
+    def row(method, box, seed, outcome, steps, adapt=0.0, n_adapt=0):
+        s = {
+            "success": outcome == "success",
+            "aborted": outcome == "refused",
+            "failed_reason": None,
+            "steps": steps,
+            "wall_s": 2.0,
+            "adapt_s": adapt,
+            "adaptations": n_adapt,
+            "max_balance_error_m": 0.01 * (seed + 1),
+            "plan_ms_median": 5.0,
+        }
+        if outcome not in ("success", "refused"):
+            s["failed_reason"] = outcome
+        return comparison._row(method, box, seed, s)
+
+    rows = [
+        row("blackbox", "A", 0, "success", 100, 1.0, 4),
+        row("blackbox", "A", 1, "tipped", 300, 3.0, 6),
+        row("prior", "D", 0, "refused", 45),
+    ]
+    t = {(r["box"], r["method"]): r for r in comparison.table(rows)}
+    a = t[("A", "blackbox")]
+    assert a["success_ratio"] == 0.5 and a["mean_steps_successes"] == 100
+    assert a["outcomes"] == {"success": 1, "tipped": 1} and a["adapt_epoch_s_median"] == 0.375
+    assert a["paper_success"] == 1.0 and a["worst_balance_m"] == 0.02
+    d = t[("D", "prior")]
+    assert d["refused"] == 1 and d["worst_balance_m"] is None and d["paper_success"] == "aborts"
+    md = comparison.format_table(comparison.table(rows))
+    assert "| A | blackbox | 1/2 |" in md and "(refused 1)" in md
