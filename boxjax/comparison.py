@@ -123,15 +123,24 @@ def compare(
     return {
         "rows": rows,
         "table": table(rows),
+        "table2": table2(),
         "wall_s": time.perf_counter() - t0,
         "adapt_every": adapt_every,
         "adapt_epochs": adapt_epochs,
     }
 
 
-def random_safe(cfg: Config = DEFAULT, n: int = 30, seed: int = 0, methods=METHODS, model=None,
-                adapt_every: int = 20, adapt_epochs: int = 1, jsonl: str | None = None,
-                progress: bool = True) -> list[dict]:
+def random_safe(
+    cfg: Config = DEFAULT,
+    n: int = 30,
+    seed: int = 0,
+    methods=METHODS,
+    model=None,
+    adapt_every: int = 20,
+    adapt_epochs: int = 1,
+    jsonl: str | None = None,
+    progress: bool = True,
+) -> list[dict]:
     """Beyond the paper: both methods on the first `n` random label-safe boxes of `boxjax evaluate
     --seed SEED` (`experiments.make_boxes`, the same boxes and episode keys), one episode each. Rows as
     `compare`'s, box = "safe<j>"; appended to `jsonl` (one JSON object per line) as they finish."""
@@ -159,6 +168,37 @@ def random_safe(cfg: Config = DEFAULT, n: int = 30, seed: int = 0, methods=METHO
                 with open(jsonl, "a") as f:
                     f.write(json.dumps(rows[-1]) + "\n")
     return rows
+
+
+def table2(w_weights: str | None = None) -> list[dict]:
+    """Paper Table 2 from what the shipped (or given) models were really trained on: transitions, where
+    the data came from, zero-shot or not (read from the estimator's report and W's checkpoint)."""
+    import json
+    import os
+
+    rep = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "estimator_report.json")
+    with open(rep) as f:
+        h = json.load(f)["training"]
+    _, meta = baseline.load(w_weights or baseline.shipped_path(), with_meta=True)
+    info = meta.get("info", {})
+    kinds = ", ".join(f"{v} {k}" for k, v in info.get("episodes_by_kind", {}).items())
+    return [
+        {
+            "model": "H (physical priors estimation)",
+            "transitions": h["dataset_summary"]["transitions"],
+            "data_from": f"{h['boxes']} random boxes, 45 fixed exploration steps each",
+            "zero_shot": True,
+            "paper": "~90k transitions, 2000 random boxes x 45 steps, zero-shot",
+        },
+        {
+            "model": "W (black-box MPC baseline)",
+            "transitions": info.get("transitions"),
+            "data_from": f"{info.get('episodes')} full episodes of box {info.get('distribution')}: {kinds}",
+            "zero_shot": False,
+            "online_adaptation": True,
+            "paper": "~122k transitions, ~200 episodes of one box (random + successful policies), adapted",
+        },
+    ]
 
 
 def table(rows: list[dict]) -> list[dict]:

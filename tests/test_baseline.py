@@ -169,6 +169,11 @@ def test_shipped_weights_load_with_paper_size():
     assert 2.0e6 < B.n_params(model) < 3.0e6
     assert meta["info"]["distribution"] == "A"
     assert os.path.getsize(B.shipped_path()) <= 10 * 2**20
+    from boxjax import comparison
+
+    t2 = comparison.table2()
+    assert t2[1]["transitions"] == meta["info"]["transitions"] and t2[1]["zero_shot"] is False
+    assert t2[0]["zero_shot"] is True
 
 
 @pytest.mark.parametrize(
