@@ -15,6 +15,7 @@ from functools import lru_cache
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from boxjax import massdist, planner, planning, prior, task
@@ -43,6 +44,9 @@ class ControllerConfig:
     sampling: Any = None  # sampling_planner.SamplingOptions (None: its defaults)
     simulator: Any = None  # simulator_planner.SimulatorOptions (None: its defaults)
     adapt_every: int = 0  # MPC steps between online adaptations of a learned model (0: none; paper: 20)
+    # Gain of the drift observer (planning.DriftCorrected; 0: off): each step the model's prediction of
+    # the state just reached is compared with it and the per-step drift corrected by gain x the error.
+    observer_gain: float = 0.0
 
     def __post_init__(self):
         if self.planner not in PLANNERS:
@@ -236,6 +240,8 @@ def run_episode(
         belief = massdist.validate(est["distribution"], cfg.box)
         # 3. refuse when hazardous
         why = hazard_explanation(belief, cfg, bool(est["hazardous"]), est.get("hazard_prob"))
+        if why is not None and est.get("hazard_explanation"):  # the physics rule's reading (boxjax.hazard)
+            why = f"{why} Physics rule: {est['hazard_explanation']}"
     plan_ms: list[float] = []
     adapt_s, adaptations = 0.0, 0
     if why is None and not lost_exploring:
@@ -259,6 +265,8 @@ def run_episode(
             return planning.observation(w, np.asarray(state.belt_speed, np.float32), state.target_yaw, sim)
 
         plan_state = mpc.init(observe(state))
+        if ctrl.observer_gain > 0:
+            model = planning.DriftCorrected(model, jnp.zeros(3, jnp.float32))
         mpc_steps = 0
         while not bool(state.done) and len(actions) < max_steps:
             if adapter is not None and mpc_steps > 0 and mpc_steps % ctrl.adapt_every == 0:
@@ -275,8 +283,13 @@ def run_episode(
             plan_ms.append(1e3 * (time.perf_counter() - t0))
             if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
                 raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
+            if ctrl.observer_gain > 0:
+                predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)
             state = act(state, a)
             window.append(np.asarray(state.s))
+            if ctrl.observer_gain > 0 and not bool(state.done):
+                drift = planning.update_drift(model.drift, predicted, state.s, ctrl.observer_gain)
+                model = dataclasses.replace(model, drift=drift)
     wall = time.perf_counter() - t_start
 
     trace = EpisodeTrace.from_states(rows, actions, cfg.gripper.control_dt, wall)

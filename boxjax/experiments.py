@@ -122,6 +122,7 @@ def _row(j: int, boxes: EvalBoxes, res, cfg: Config) -> dict:
         "outcome": outcome(s),
         "steps": int(s["steps"]),
         "max_balance_error_m": float(s["max_balance_error_m"]),
+        "final_yaw_error_deg": math.degrees(float(s["final_yaw_error_rad"])),
         "lost_exploring": bool(s.get("lost_exploring", False)),
         "plan_ms_median": s["plan_ms_median"],
         "wall_s": float(s["wall_s"]),

@@ -26,6 +26,8 @@ mass (a black box) returns a large constant margin (`NO_MARGIN`), so margin-base
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol
 
@@ -77,3 +79,38 @@ def observation(window, belt_speed, target_yaw, sim=None) -> Observation:
         jnp.asarray(target_yaw, jnp.float32),
         sim,
     )
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["model", "drift"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class DriftCorrected:
+    """A model whose predictions carry an estimated per-step drift (offset-free MPC's integrating
+    output disturbance): step k of a rollout is moved by (k + 1) * drift in (x, y, yaw).
+
+    drift: (3,) m, m, rad per control step, estimated online from what the box did against what the
+    model predicted (`update_drift`). A model's systematic error under the current regime (a carriage
+    dragging the box less than predicted, a slower spin) then stops steering the plan the wrong way.
+    """
+
+    model: Any
+    drift: jax.Array
+
+    def rollout_sequence(self, window, belt_speed, actions) -> jax.Array:
+        states = self.model.rollout_sequence(window, belt_speed, actions)
+        k = jnp.arange(1, states.shape[0] + 1, dtype=states.dtype)[:, None]
+        return states.at[:, 2:].add(k * self.drift)
+
+    def stability_margin(self, s) -> jax.Array:
+        return self.model.stability_margin(s)
+
+
+def update_drift(drift, predicted, observed, gain: float):
+    """Integrating observer: drift + gain * (observed - predicted) in (x, y, yaw), where `predicted` is
+    the corrected model's one-step prediction of the state just observed (both (5,))."""
+    return drift + gain * (jnp.asarray(observed, jnp.float32)[2:] - jnp.asarray(predicted, jnp.float32)[2:])
+
+
+@jax.jit
+def predict_first(model, window, belt_speed, action) -> jax.Array:
+    """(5,) the model's prediction one step ahead for `action` (4,)."""
+    return model.rollout_sequence(window, belt_speed, jnp.asarray(action, jnp.float32)[None])[0]

@@ -17,7 +17,10 @@ the paper restricts its candidates to one non-zero component so that its calibra
 applies; the "slip" prior needs no such restriction.
 
 Score (lower is better), summed over the predicted states s_1..s_H (paper's objectives, made a cost):
-  * pose:     w_yaw * yaw_error^2                     (R1 of eq. 1, without the epsilon)
+  * pose:     w_yaw * (sqrt(e^2 + d^2) - d), e the yaw error, d the task's 2 degree tolerance ("l1",
+              default), or w_yaw * e^2 ("quadratic": R1 of eq. 1 without the epsilon, the cost before
+              2026-12-01). A quadratic's pull vanishes near the target, where the balance and effort
+              terms then win: episodes stalled a few degrees short with the carriages at their stops;
   * balance:  w_balance * (balance_error / limit)^2    (R2 of eq. 1) plus a steep barrier
               w_barrier * relu(balance_error / limit - safe_fraction)^2 beyond safe_fraction of the limit;
   * workspace: the same barrier on the box's overhang beyond the belt ends (x), on its distance
@@ -32,6 +35,13 @@ Score (lower is better), summed over the predicted states s_1..s_H (paper's obje
   * effort:   w_effort * (dp / max_position_step)^2 (sideways moves drag the box; use them when needed).
 The best rollout's (R1, R2) at its worst state are reported in PlanInfo so the Pareto view of the paper
 stays available.
+
+Beyond predictive sampling (all `SamplingOptions`, measured in the README): perturbations at spline
+knots (`n_knots`, MuJoCo MPC's parameterisation), several sampling rounds per step with MPPI's weighted
+mean or CEM's elite mean and std (`update`, `iterations`), Adam refinement of the chosen sequence by
+gradient through the differentiable prior (`gradient_steps`, optax), and a deadband on carriage steps
+(`position_deadband`). `make(cfg, options)` puts the planner behind the one planner interface
+(`planning.Planner`).
 
 Keys are explicit; `make_sampling_planner(cfg, **options)` returns a jitted
 `plan(key, model, window, belt_speed, target_yaw, nominal) -> (action (4,), SamplingInfo)`.
@@ -52,6 +62,7 @@ from boxjax.config import Config
 
 
 UPDATES = ("best", "mppi", "cem")
+POSE_COSTS = ("quadratic", "l1")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,10 +97,20 @@ class SamplingOptions:
     min_sigma_fraction: float = 0.2  # CEM, the std never shrinks below this fraction of the sigmas
     gradient_steps: int = 0  # Adam steps through the prior on the chosen sequence (0: none)
     gradient_lr: float = 0.1  # in units of the perturbation std per step
+    # m: position steps smaller than this are sent (and predicted) as 0. Every carriage step is an
+    # impulsive event the prior predicts worst (README: one-step error 0.75 mm for position actions,
+    # 0.25 mm for speed actions); without a deadband the gaussian noise moves a carriage every step.
+    position_deadband: float = 0.0
+    # The pose term: "quadratic" w_yaw * e^2 (the paper's R1 = 1 / (e^2 + eps) made a cost), or "l1"
+    # w_yaw * (sqrt(e^2 + d^2) - d) with d the task's yaw tolerance: a quadratic cost's pull vanishes
+    # near the target (at 5 degrees its slope is 1/5 of the L1's), where the other terms then decide.
+    pose_cost: str = "l1"
 
     def __post_init__(self):
         if self.n_samples < 2 or self.horizon < 1:
             raise ValueError(f"need n_samples >= 2 and horizon >= 1, got {self.n_samples}, {self.horizon}")
+        if self.pose_cost not in POSE_COSTS:
+            raise ValueError(f"unknown pose_cost {self.pose_cost!r}; choose one of {POSE_COSTS}")
         if self.update not in UPDATES:
             raise ValueError(f"unknown update {self.update!r}; choose one of {UPDATES}")
         if self.iterations < 1 or self.gradient_steps < 0:
@@ -148,12 +169,17 @@ def shift_nominal(nominal) -> jax.Array:
     return jnp.concatenate([nominal[1:], nominal[-1:]], axis=0)
 
 
-def clip_actions(actions, cfg: Config, speed_cap: float | None = None):
-    """Clip (..., 4) actions to the hardware (and the planner's speed cap)."""
+def clip_actions(actions, cfg: Config, speed_cap: float | None = None, position_deadband: float = 0.0):
+    """Clip (..., 4) actions to the hardware (and the planner's speed cap); position steps smaller than
+    `position_deadband` (m) become 0."""
     g = cfg.gripper
     vmax = g.belt_speed_limit if speed_cap is None else min(speed_cap, g.belt_speed_limit)
     hi = jnp.array([vmax, vmax, g.max_position_step, g.max_position_step], jnp.float32)
-    return jnp.clip(actions, -hi, hi)
+    a = jnp.clip(actions, -hi, hi)
+    if position_deadband > 0:
+        dp = a[..., 2:]
+        a = a.at[..., 2:].set(jnp.where(jnp.abs(dp) < position_deadband, 0.0, dp))
+    return a
 
 
 def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
@@ -185,7 +211,12 @@ def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOpt
     barrier = relu2(bal - o.safe_fraction) + relu2(over_x / lim) + relu2(over_y / lim) + relu2(support / lim)
     barrier = barrier + relu2(tip / lim)
     effort = jnp.sum(jnp.square(actions[:, 2:] / cfg.gripper.max_position_step), axis=-1)
-    per_step = o.w_yaw * yaw_err**2 + o.w_balance * bal**2 + o.w_barrier * barrier + o.w_effort * effort
+    if o.pose_cost == "l1":
+        d = cfg.task.yaw_tolerance
+        pose = jnp.sqrt(yaw_err**2 + d * d) - d
+    else:
+        pose = yaw_err**2
+    per_step = o.w_yaw * pose + o.w_balance * bal**2 + o.w_barrier * barrier + o.w_effort * effort
     return jnp.sum(per_step)
 
 
@@ -264,7 +295,7 @@ def plan(
     keys = jax.random.split(key, o.iterations) if o.iterations > 1 else [key]
     for it in range(o.iterations):
         noise = perturbations(keys[it], o) * sigma
-        seqs = clip_actions(jnp.concatenate([mean[None], mean[None] + noise]), cfg, o.speed_cap)
+        seqs = clip_actions(jnp.concatenate([mean[None], mean[None] + noise]), cfg, o.speed_cap, o.position_deadband)
         states, cost = evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg, o)
         costs.append(cost)
         i = jnp.argmin(cost)
@@ -274,7 +305,7 @@ def plan(
         best_cost = jnp.where(better, cost[i], best_cost)
         mean, sigma = (seqs[i], sigma) if o.update == "best" else _update(seqs, cost, sigma, o)
     if o.update != "best":  # score the final mean too
-        mean = clip_actions(mean, cfg, o.speed_cap)
+        mean = clip_actions(mean, cfg, o.speed_cap, o.position_deadband)
         st_m, c_m = evaluate_sequences(model, window, belt_speed, target_yaw, mean[None], cfg, o)
         better = c_m[0] < best_cost
         best_seq, best_states = jnp.where(better, mean, best_seq), jnp.where(better, st_m[0], best_states)

@@ -1,0 +1,61 @@
+"""One `boxjax evaluate` run with sampling-planner or controller options the CLI does not expose (the
+planner study in the README: horizon, knots, MPPI / CEM, gradient refinement, pose cost, observer).
+
+    python scripts/planner_study.py --boxes 100 --seed 0 --sampling update=mppi --sampling horizon=20 \
+        [--controller observer_gain=0.3] [--estimator oracle|learned] [--out DIR]
+
+Values are parsed as JSON (numbers, true / false, "strings" or bare words). Prints one JSON line: the
+evaluation summary (as `boxjax evaluate --json`) and the failed box indices.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from boxjax import experiments
+from boxjax.config import DEFAULT
+from boxjax.controller import ControllerConfig
+from boxjax.sampling_planner import SamplingOptions
+
+
+def _pairs(items: list[str], what: str) -> dict:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise SystemExit(f"--{what} {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k] = v
+    return out
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--boxes", type=int, default=100)
+    ap.add_argument("--hazardous", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--estimator", choices=("oracle", "learned"), default="oracle")
+    ap.add_argument("--sampling", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--controller", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--out", help="write evaluation.json and boxes.npz here (for `boxjax rotate --replay`)")
+    args = ap.parse_args(argv)
+    try:
+        ctrl = ControllerConfig(sampling=SamplingOptions(**_pairs(args.sampling, "sampling")),
+                                **_pairs(args.controller, "controller"))
+    except (TypeError, ValueError) as e:
+        sys.stderr.write(f"planner_study: error: {e}\n")
+        raise SystemExit(2) from e
+    ev = experiments.evaluate(DEFAULT, args.boxes, args.hazardous, args.seed, estimator=args.estimator, ctrl=ctrl)
+    if args.out:
+        experiments.write_evaluation(ev, args.out, " ".join(["python", *sys.argv]))
+    out = {**ev.summary, "failed": [r["index"] for r in ev.rows if r["outcome"] != "success"]}
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""The one planner interface and the model slot: every planner through init / optimize, the drift observer."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import massdist, planner, planning, prior
+from boxjax import sampling_planner as sp
+from boxjax.config import DEFAULT
+from boxjax.controller import ControllerConfig, make_planner
+
+CFG = DEFAULT
+S0 = jnp.array([-0.10, 0.10, 0.0, 0.0, 0.0], jnp.float32)
+OBS = planning.observation(prior.initial_window(S0), jnp.zeros(2), jnp.pi / 2)
+
+
+def _model(name="A"):
+    return prior.make_prior(massdist.voxel_masses(massdist.named(name, CFG.box), CFG.box), None, CFG.box, CFG.gripper)
+
+
+def test_paper_planner_through_the_interface_is_the_paper_planner():
+    mpc = planner.make(CFG, n_samples=50, rule="random")
+    direct = planner.make_planner(CFG, n_samples=50, rule="random")
+    key, model = jax.random.PRNGKey(2), _model()
+    a, state, info = mpc.optimize(key, model, OBS, mpc.init(OBS))
+    b, _ = direct(key, model, OBS.window, OBS.belt_speed, OBS.target_yaw)
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert state == () and not mpc.privileged
+
+
+def test_sampling_planner_state_is_the_shifted_nominal():
+    o = sp.SamplingOptions(n_samples=8, horizon=4)
+    mpc = sp.make(CFG, o)
+    st0 = mpc.init(OBS)
+    assert st0.shape == (4, 4)
+    a, st1, info = mpc.optimize(jax.random.PRNGKey(0), _model(), OBS, st0)
+    np.testing.assert_array_equal(np.asarray(st1), np.asarray(sp.shift_nominal(info.nominal)))
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(info.nominal[0]))
+
+
+def test_controller_builds_each_planner_by_name():
+    for name in ("sampling", "paper"):
+        mpc = make_planner(CFG, ControllerConfig(planner=name))
+        assert mpc.name == name
+
+
+def test_drift_corrected_model_adds_k_times_the_drift_and_the_observer_integrates():
+    model = _model()
+    drift = jnp.array([1e-3, -2e-3, 0.01], jnp.float32)
+    acts = jnp.tile(jnp.array([[0.05, -0.05, 0.0, 0.0]]), (3, 1))
+    base = np.asarray(model.rollout_sequence(OBS.window, OBS.belt_speed, acts))
+    corr = np.asarray(planning.DriftCorrected(model, drift).rollout_sequence(OBS.window, OBS.belt_speed, acts))
+    np.testing.assert_allclose(corr[:, :2], base[:, :2])
+    np.testing.assert_allclose(corr[:, 2:] - base[:, 2:], np.outer([1, 2, 3], np.asarray(drift)), atol=1e-6)
+    first = planning.predict_first(model, OBS.window, OBS.belt_speed, acts[0])
+    np.testing.assert_allclose(np.asarray(first), base[0], atol=1e-6)
+    observed = base[0] + np.array([0, 0, 4e-3, 0, 0.02])
+    new = planning.update_drift(jnp.zeros(3), base[0], observed, 0.5)
+    np.testing.assert_allclose(np.asarray(new), [2e-3, 0.0, 0.01], atol=1e-6)
+    assert np.asarray(model.stability_margin(S0)) == np.asarray(planning.DriftCorrected(model, drift).stability_margin(S0))
