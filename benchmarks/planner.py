@@ -1,12 +1,12 @@
-"""Planner latency: one MPC step with the physics prior, for both planners.
+"""Planner latency: one MPC step with the physics prior, for the paper planner and the sampling planners.
 
 Prints ONE JSON object:
   * the paper's planner (sample restricted actions, predict each with the prior, Pareto front, select):
     compile time, per-step latency for 50 actions (median and p99 over >= 200 calls after compile, each
     call waited on with block_until_ready), and the latency for 4096 actions;
-  * the predictive-sampling planner (the controller's default, `sampling_planner`): compile time and
-    per-step latency at its default size (64 sequences x 10 steps = 640 prior predictions), and at 4x
-    the sequences;
+  * the sampling planner (the controller's default, `sampling_planner`): compile time and per-step
+    latency at its default (64 sequences x 10 steps = 640 prior predictions + 5 gradient steps) and
+    for each setting of `SAMPLING_CONFIGS` (the planner study of the README), all in one run;
   * the backend / device and the machine's load.
 Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random]
 """
@@ -27,15 +27,17 @@ from boxjax import calibrate, massdist, planner, prior
 from boxjax import sampling_planner as sp
 from boxjax.config import DEFAULT
 
-
 # Sampling-planner settings timed (SamplingOptions overrides; "default" is the class default).
 SAMPLING_CONFIGS = {
-    "default": {},
-    "n256_h10": {"n_samples": 256},
-    "n128_h20_knots4": {"n_samples": 128, "horizon": 20, "n_knots": 4},
-    "n64_h20_knots4_cem2": {"n_samples": 64, "horizon": 20, "n_knots": 4, "update": "cem", "iterations": 2},
-    "n128_h20_knots4_mppi": {"n_samples": 128, "horizon": 20, "n_knots": 4, "update": "mppi"},
-    "n64_h20_knots4_grad5": {"n_samples": 64, "horizon": 20, "n_knots": 4, "gradient_steps": 5},
+    "default": {},  # 64 x 10, L1 pose cost, 5 gradient steps
+    "no_gradient": {"gradient_steps": 0},
+    "quadratic_pose_no_gradient": {"pose_cost": "quadratic", "gradient_steps": 0},
+    "n256_no_gradient": {"n_samples": 256, "gradient_steps": 0},
+    "mppi_no_gradient": {"update": "mppi", "gradient_steps": 0},
+    "cem_2x32_no_gradient": {"n_samples": 32, "update": "cem", "iterations": 2, "gradient_steps": 0},
+    "n32": {"n_samples": 32},
+    "knots4_no_gradient": {"n_knots": 4, "gradient_steps": 0},
+    "n128_h20_knots4_no_gradient": {"n_samples": 128, "horizon": 20, "n_knots": 4, "gradient_steps": 0},
 }
 
 

@@ -93,7 +93,9 @@ def cmd_rotate(args) -> dict:
 
     cfg = DEFAULT
     if args.replay is not None and (args.model != "prior" or args.model_weights is not None):
-        raise ValueError("--replay runs the evaluation's own episode; --model / --model-weights would do nothing")
+        raise ValueError(
+            "--replay runs the evaluation's own episode; --model / --model-weights would do nothing"
+        )
     if args.replay is not None:
         return _replay(args, cfg)
     if args.index is not None:
@@ -109,8 +111,14 @@ def cmd_rotate(args) -> dict:
     ctrl = _controller_config(args)
     ctrl, model, adapter, slot = _model_slot(args, ctrl)
     res = run_episode(
-        cfg, dist, jax.random.PRNGKey(args.seed), estimator=estimator, ctrl=ctrl, backend=args.backend,
-        model=model, adapter=adapter,
+        cfg,
+        dist,
+        jax.random.PRNGKey(args.seed),
+        estimator=estimator,
+        ctrl=ctrl,
+        backend=args.backend,
+        model=model,
+        adapter=adapter,
     )
     summary = {
         "command": "rotate",
@@ -132,8 +140,20 @@ def _replay(args, cfg) -> dict:
     from boxjax import experiments, massdist
 
     given = [f"--{n}" for n in ("distribution", "estimator", "weights") if getattr(args, n) is not None]
-    given += [f"--{n}" for n, d in (("seed", 0), ("planner", "sampling"), ("variant", "slip"), ("rule", "random"),
-                                    ("samples", 50), ("horizon", 1), ("backend", "native")) if getattr(args, n) != d]
+    given += [
+        f"--{n.replace('_', '-')}"
+        for n, d in (
+            ("seed", 0),
+            ("planner", "sampling"),
+            ("variant", "slip"),
+            ("rule", "random"),
+            ("samples", 50),
+            ("horizon", 1),
+            ("backend", "native"),
+            ("gradient_steps", None),
+        )
+        if getattr(args, n) != d
+    ]
     if given:
         raise ValueError(f"--replay runs the evaluation's own episode; {', '.join(given)} would do nothing")
     if args.index is None:
@@ -176,10 +196,15 @@ def _model_slot(args, ctrl):
     import dataclasses
 
     if args.model == "prior":
-        given = [f"--{n}" for n in ("adapt-every", "adapt-epochs", "model-weights")
-                 if getattr(args, n.replace("-", "_")) is not None]
+        given = [
+            f"--{n}"
+            for n in ("adapt-every", "adapt-epochs", "model-weights")
+            if getattr(args, n.replace("-", "_")) is not None
+        ]
         if given:
-            raise ValueError(f"{', '.join(given)}: options of --model blackbox; --model prior has no W to adapt")
+            raise ValueError(
+                f"{', '.join(given)}: options of --model blackbox; --model prior has no W to adapt"
+            )
         return ctrl, None, None, {"model": "prior"}
     from boxjax import baseline
 
@@ -201,8 +226,12 @@ def cmd_train_baseline(args) -> dict:
     if os.path.exists(os.path.join(args.out, "baseline.npz")) and not args.force:
         raise ValueError(f"--out {args.out} already holds baseline.npz; pass --force to overwrite it")
     return baseline_train.train_baseline(
-        distribution=args.distribution, n_episodes=args.episodes, seed=args.seed, out=args.out,
-        progress=not args.json, data=args.data,
+        distribution=args.distribution,
+        n_episodes=args.episodes,
+        seed=args.seed,
+        out=args.out,
+        progress=not args.json,
+        data=args.data,
     )
 
 
@@ -245,11 +274,31 @@ def _controller_config(args):
     if args.planner != "paper":
         for name, default in (("rule", "random"), ("samples", 50), ("horizon", 1)):
             if getattr(args, name) != default:
-                raise ValueError(f"--{name} is an option of the paper planner; it does nothing for --planner {args.planner}")
+                raise ValueError(
+                    f"--{name} is an option of the paper planner; it does nothing for "
+                    f"--planner {args.planner}"
+                )
     if args.samples < 1 or args.horizon < 1:
         raise ValueError(f"--samples and --horizon must be >= 1, got {args.samples}, {args.horizon}")
+    sampling = None
+    if args.gradient_steps is not None:
+        if args.planner != "sampling":
+            raise ValueError(
+                "--gradient-steps is an option of the sampling planner; it does nothing for "
+                f"--planner {args.planner}"
+            )
+        if args.gradient_steps < 0:
+            raise ValueError(f"--gradient-steps must be >= 0, got {args.gradient_steps}")
+        from boxjax.sampling_planner import SamplingOptions
+
+        sampling = SamplingOptions(gradient_steps=args.gradient_steps)
     return ControllerConfig(
-        rule=args.rule, n_samples=args.samples, horizon=args.horizon, variant=args.variant, planner=args.planner
+        rule=args.rule,
+        n_samples=args.samples,
+        horizon=args.horizon,
+        variant=args.variant,
+        planner=args.planner,
+        sampling=sampling,
     )
 
 
@@ -266,8 +315,14 @@ def cmd_evaluate(args) -> dict:
         raise ValueError(f"--out {args.out} exists and is not empty; pass --force to overwrite its results")
     ctrl = _controller_config(args)
     ev = experiments.evaluate(
-        cfg, args.boxes, args.hazardous, args.seed, estimator=args.estimator, ctrl=ctrl,
-        family=args.hazard_family, progress=not args.quiet,
+        cfg,
+        args.boxes,
+        args.hazardous,
+        args.seed,
+        estimator=args.estimator,
+        ctrl=ctrl,
+        family=args.hazard_family,
+        progress=not args.quiet,
     )
     summary = {"command": "evaluate", **ev.summary}
     if args.out:
@@ -458,6 +513,12 @@ def _simulation_args(p: argparse.ArgumentParser) -> None:
 
 
 def _planner_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--gradient-steps",
+        type=int,
+        default=None,
+        help="sampling planner: Adam steps through the prior on the chosen sequence (default 5; 0: none)",
+    )
     from boxjax.controller import PLANNERS
 
     p.add_argument("--rule", default="random", help="Pareto-front selection rule (planner.RULES)")
@@ -500,18 +561,32 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--distribution", choices=NAMES, default=None, help="named box (default A)")
     r.add_argument("--estimator", choices=("oracle", "learned"), default=None, help="default oracle")
     r.add_argument("--weights", help="estimator checkpoint (default: the one shipped with boxjax)")
-    r.add_argument("--replay", metavar="DIR", help="re-run one box of `boxjax evaluate --out DIR` (with --index)")
+    r.add_argument(
+        "--replay", metavar="DIR", help="re-run one box of `boxjax evaluate --out DIR` (with --index)"
+    )
     r.add_argument("--index", type=int, help="the box's index in DIR/evaluation.json")
     r.add_argument("--backend", choices=BACKENDS, default="native")
     r.add_argument("--seed", type=int, default=0)
     _planner_args(r)
-    r.add_argument("--model", choices=("prior", "blackbox"), default="prior",
-                   help="the planners' model: the physics prior, or the black box W (baseline.py)")
+    r.add_argument(
+        "--model",
+        choices=("prior", "blackbox"),
+        default="prior",
+        help="the planners' model: the physics prior, or the black box W (baseline.py)",
+    )
     r.add_argument("--model-weights", help="W checkpoint for --model blackbox (default: the shipped one)")
-    r.add_argument("--adapt-every", type=int, default=None,
-                   help="--model blackbox: MPC steps between online adaptations of W (default 20; 0: none)")
-    r.add_argument("--adapt-epochs", type=int, default=None,
-                   help="--model blackbox: epochs over the episode's data per adaptation (default 1)")
+    r.add_argument(
+        "--adapt-every",
+        type=int,
+        default=None,
+        help="--model blackbox: MPC steps between online adaptations of W (default 20; 0: none)",
+    )
+    r.add_argument(
+        "--adapt-epochs",
+        type=int,
+        default=None,
+        help="--model blackbox: epochs over the episode's data per adaptation (default 1)",
+    )
     r.add_argument("--plot", help="write yaw / balance / belts over the episode to this PNG")
     r.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     r.set_defaults(func=cmd_rotate)
@@ -531,7 +606,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--boxes", nargs="+", choices=NAMES, default=["A", "B", "C", "D"])
     m.add_argument("--methods", nargs="+", choices=("prior", "blackbox"), default=["prior", "blackbox"])
     m.add_argument("--model-weights", help="W checkpoint (default: the shipped one)")
-    m.add_argument("--adapt-every", type=int, default=20, help="steps between W's online adaptations (0: none)")
+    m.add_argument(
+        "--adapt-every", type=int, default=20, help="steps between W's online adaptations (0: none)"
+    )
     m.add_argument("--adapt-epochs", type=int, default=1)
     m.add_argument("--out", help="directory for comparison.json")
     m.add_argument("--json", action="store_true", help="print the result as one JSON line")
@@ -539,15 +616,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("evaluate", help="the controller on many random safe and hazardous boxes (paper §4.3)")
     v.add_argument("--boxes", type=int, default=100, help="random label-safe boxes")
-    v.add_argument("--hazardous", type=int, default=0, help="random hazardous boxes (all mass in one quarter)")
-    v.add_argument("--hazard-family", choices=("gaussian", "items"), default="gaussian",
-                   help="gaussian: massdist.sample_hazardous (H's training family); items: 1-16 voxels")
+    v.add_argument(
+        "--hazardous", type=int, default=0, help="random hazardous boxes (all mass in one quarter)"
+    )
+    v.add_argument(
+        "--hazard-family",
+        choices=("gaussian", "items"),
+        default="gaussian",
+        help="gaussian: massdist.sample_hazardous (H's training family); items: 1-16 voxels",
+    )
     v.add_argument("--seed", type=int, default=0, help="draws the boxes and every episode's key")
     v.add_argument("--estimator", choices=("oracle", "learned"), default="oracle")
     _planner_args(v)
     v.add_argument("--out", help="directory: evaluation.json (one row per box) and boxes.npz (for --replay)")
     v.add_argument("--force", action="store_true", help="overwrite the results in a non-empty --out")
-    v.add_argument("--plot", help="balance error over time (paper Fig. 3c) and outcomes over the centre of mass")
+    v.add_argument(
+        "--plot", help="balance error over time (paper Fig. 3c) and outcomes over the centre of mass"
+    )
     v.add_argument("--quiet", action="store_true", help="no progress bar")
     v.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     v.set_defaults(func=cmd_evaluate)

@@ -74,7 +74,9 @@ def sample_safe(key, n: int, cfg: Config) -> list[massdist.MassDistribution]:
     return out
 
 
-def sample_hazard_family(key, n: int, cfg: Config, family: str = "gaussian") -> list[massdist.MassDistribution]:
+def sample_hazard_family(
+    key, n: int, cfg: Config, family: str = "gaussian"
+) -> list[massdist.MassDistribution]:
     """n hazardous distributions: "gaussian" (`massdist.sample_hazardous`, the family H was trained on) or
     "items" (`massdist.sample_items_hazardous`: 1-16 occupied voxels inside one outer quarter)."""
     if family not in HAZARD_FAMILIES:
@@ -162,7 +164,9 @@ def summarize(rows: list[dict]) -> dict:
         "hazard_recall": refused / len(haz) if haz else None,
         "hazard_outcomes": dict(sorted(Counter(r["outcome"] for r in haz).items())),
         "steps_success": _median_max(r["steps"] for r in turned),
-        "max_balance_error_m": _median_max(r["max_balance_error_m"] for r in safe if r["outcome"] != "aborted"),
+        "max_balance_error_m": _median_max(
+            r["max_balance_error_m"] for r in safe if r["outcome"] != "aborted"
+        ),
     }
 
 
@@ -179,9 +183,14 @@ class Evaluation(NamedTuple):
 def settings(estimator: str, ctrl: ControllerConfig, seed: int, family: str) -> dict:
     """What an evaluation ran with (enough to rebuild the same episodes)."""
     c = dataclasses.asdict(ctrl)
-    return {"estimator": estimator, "seed": seed, "hazard_family": family, "controller": json.loads(
-        json.dumps(c, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
-    )}
+    return {
+        "estimator": estimator,
+        "seed": seed,
+        "hazard_family": family,
+        "controller": json.loads(
+            json.dumps(c, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
+        ),
+    }
 
 
 def evaluate(
@@ -191,7 +200,7 @@ def evaluate(
     seed: int = 0,
     *,
     estimator: str = "oracle",
-    ctrl: ControllerConfig = ControllerConfig(),
+    ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008 (frozen dataclass: immutable)
     family: str = "gaussian",
     progress: bool = True,
     estimator_fn: Any = None,
@@ -205,7 +214,9 @@ def evaluate(
       ctrl: the controller (planner, prior variant, options). family: the hazardous boxes' family.
     """
     if n_safe < 0 or n_hazardous < 0 or n_safe + n_hazardous < 1:
-        raise ValueError(f"need at least one box and no negative counts, got {n_safe} safe, {n_hazardous} hazardous")
+        raise ValueError(
+            f"need at least one box and no negative counts, got {n_safe} safe, {n_hazardous} hazardous"
+        )
     if estimator not in ("oracle", "learned"):
         raise ValueError(f"unknown estimator {estimator!r}; choose 'oracle' or 'learned'")
     est: Any = "oracle"
@@ -222,7 +233,9 @@ def evaluate(
 
         bar = tqdm(total=len(boxes), desc=f"evaluate ({estimator}, {ctrl.planner})", unit="box", leave=False)
     for j in range(len(boxes)):
-        res = run_episode(cfg, boxes.dist(j), jax.random.wrap_key_data(boxes.keys[j]), estimator=est, ctrl=ctrl)
+        res = run_episode(
+            cfg, boxes.dist(j), jax.random.wrap_key_data(boxes.keys[j]), estimator=est, ctrl=ctrl
+        )
         rows.append(_row(j, boxes, res, cfg))
         balance.append(np.asarray(res.trace.balance_error, np.float32))
         if bar is not None:
@@ -231,7 +244,11 @@ def evaluate(
             bar.update(1)
     if bar is not None:
         bar.close()
-    summary = {**summarize(rows), **settings(estimator, ctrl, seed, family), "wall_s": time.perf_counter() - t0}
+    summary = {
+        **summarize(rows),
+        **settings(estimator, ctrl, seed, family),
+        "wall_s": time.perf_counter() - t0,
+    }
     return Evaluation(summary, rows, boxes, balance)
 
 
@@ -245,7 +262,11 @@ def write_evaluation(ev: Evaluation, out_dir, command: str | None = None) -> dic
     pad = np.full((len(ev.balance), int(lengths.max(initial=1))), np.nan, np.float32)
     for j, b in enumerate(ev.balance):
         pad[j, : len(b)] = b
-    arrays = {**{k: np.asarray(v) for k, v in ev.boxes._asdict().items()}, "balance": pad, "balance_len": lengths}
+    arrays = {
+        **{k: np.asarray(v) for k, v in ev.boxes._asdict().items()},
+        "balance": pad,
+        "balance_len": lengths,
+    }
     arrays["family"] = arrays["family"].astype("U16")
     fileio.write_npz_with_meta(npz_path, arrays, {"summary": ev.summary}, RESULTS_FORMAT, RESULTS_VERSION)
     doc = {"command": command, "summary": ev.summary, "rows": ev.rows}
@@ -288,12 +309,16 @@ def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
     same episode. Returns (controller.EpisodeResult, the evaluation's row for that box)."""
     boxes, summary = load_boxes(out_dir)
     if not 0 <= index < len(boxes):
-        raise ValueError(f"--index {index} is outside the evaluation's {len(boxes)} boxes (0..{len(boxes) - 1})")
+        raise ValueError(
+            f"--index {index} is outside the evaluation's {len(boxes)} boxes (0..{len(boxes) - 1})"
+        )
     est: Any = "oracle"
     if summary["estimator"] == "learned":
         from boxjax.controller import learned_estimator
 
         est = estimator_fn or learned_estimator(cfg)
     ctrl = controller_from_settings(summary)
-    res = run_episode(cfg, boxes.dist(index), jax.random.wrap_key_data(boxes.keys[index]), estimator=est, ctrl=ctrl)
+    res = run_episode(
+        cfg, boxes.dist(index), jax.random.wrap_key_data(boxes.keys[index]), estimator=est, ctrl=ctrl
+    )
     return res, summary

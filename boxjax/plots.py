@@ -275,15 +275,28 @@ def plot_evaluation(ev, path, cfg=DEFAULT, title: str | None = None) -> str:
     ax_b.legend(loc="upper right", fontsize=8)
     ax_b.set_title("balance error over the episode (paper Fig. 3c)", fontsize=10)
     hx, hy, _ = (100 * h for h in cfg.box.half_size)
-    for x0, x1, y0, y1 in ((-hx, -hx / 2, -hy, hy), (hx / 2, hx, -hy, hy), (-hx, hx, -hy, -hy / 2), (-hx, hx, hy / 2, hy)):
+    for x0, x1, y0, y1 in (
+        (-hx, -hx / 2, -hy, hy),
+        (hx / 2, hx, -hy, hy),
+        (-hx, hx, -hy, -hy / 2),
+        (-hx, hx, hy / 2, hy),
+    ):
         ax_m.fill_between([x0, x1], y0, y1, color="0.85", zorder=0, lw=0)
     ax_m.plot([-hx, hx, hx, -hx, -hx], [-hy, -hy, hy, hy, -hy], "k-", lw=0.8)
     for out in sorted({r["outcome"] for r in ev.rows}):
         colour, marker = _OUTCOME_STYLE.get(out, ("k", "."))
         pts = np.asarray([r["com_cm"][:2] for r in ev.rows if r["outcome"] == out])
         haz = np.asarray([r["hazardous"] for r in ev.rows if r["outcome"] == out])
-        ax_m.scatter(pts[:, 0], pts[:, 1], c=colour, marker=marker, s=22, label=f"{out} ({len(pts)})",
-                     edgecolors="k" if marker not in ("x",) else None, linewidths=np.where(haz, 1.2, 0.0))
+        ax_m.scatter(
+            pts[:, 0],
+            pts[:, 1],
+            c=colour,
+            marker=marker,
+            s=22,
+            label=f"{out} ({len(pts)})",
+            edgecolors="k" if marker not in ("x",) else None,
+            linewidths=np.where(haz, 1.2, 0.0),
+        )
     ax_m.set_aspect("equal")
     ax_m.set_xlabel("centre of mass x (cm, box frame)")
     ax_m.set_ylabel("centre of mass y (cm)")

@@ -60,7 +60,6 @@ import numpy as np
 from boxjax import geometry, planner, planning
 from boxjax.config import Config
 
-
 UPDATES = ("best", "mppi", "cem")
 POSE_COSTS = ("quadratic", "l1")
 
@@ -95,7 +94,9 @@ class SamplingOptions:
     temperature: float = 0.1  # MPPI, relative to the mean cost spread above the best
     n_elite: int = 8  # CEM
     min_sigma_fraction: float = 0.2  # CEM, the std never shrinks below this fraction of the sigmas
-    gradient_steps: int = 0  # Adam steps through the prior on the chosen sequence (0: none)
+    # Adam steps through the prior on the chosen sequence (0: none). 5 turned 273 of 300 random safe boxes
+    # (oracle, seeds 0-2) against 259 without, for 1.8x the planning time (README, "Random boxes").
+    gradient_steps: int = 5
     gradient_lr: float = 0.1  # in units of the perturbation std per step
     # m: position steps smaller than this are sent (and predicted) as 0. Every carriage step is an
     # impulsive event the prior predicts worst (README: one-step error 0.75 mm for position actions,
@@ -114,7 +115,9 @@ class SamplingOptions:
         if self.update not in UPDATES:
             raise ValueError(f"unknown update {self.update!r}; choose one of {UPDATES}")
         if self.iterations < 1 or self.gradient_steps < 0:
-            raise ValueError(f"need iterations >= 1 and gradient_steps >= 0, got {self.iterations}, {self.gradient_steps}")
+            raise ValueError(
+                f"need iterations >= 1 and gradient_steps >= 0, got {self.iterations}, {self.gradient_steps}"
+            )
         if self.update == "cem" and not 1 <= self.n_elite < self.n_samples:
             raise ValueError(f"CEM needs 1 <= n_elite < n_samples, got {self.n_elite}, {self.n_samples}")
         if self.temperature <= 0 or not 0 < self.min_sigma_fraction <= 1:
@@ -223,7 +226,9 @@ def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOpt
 def evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg: Config, o: SamplingOptions):
     """(states (N, H, 5), cost (N,)) of the sequences (N, H, 4) under the model; non-finite costs -> inf."""
     states = jax.vmap(lambda seq: model.rollout_sequence(window, belt_speed, seq))(seqs)
-    cost = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, None))(model, states, seqs, target_yaw, cfg, o)
+    cost = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, None))(
+        model, states, seqs, target_yaw, cfg, o
+    )
     return states, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
 
 
@@ -270,7 +275,9 @@ def refine_gradient(model, window, belt_speed, target_yaw, seq, cfg: Config, o: 
         return (z, state, best_z, best_c), None
 
     z0 = seq / scale
-    (z, _, best_z, best_c), _ = jax.lax.scan(step, (z0, opt.init(z0), z0, jnp.inf), None, length=o.gradient_steps)
+    (z, _, best_z, best_c), _ = jax.lax.scan(
+        step, (z0, opt.init(z0), z0, jnp.inf), None, length=o.gradient_steps
+    )
     c_last = cost_of(z * scale)
     last_better = jnp.isfinite(c_last) & (c_last < best_c)
     best_z, best_c = jnp.where(last_better, z, best_z), jnp.where(last_better, c_last, best_c)
@@ -295,7 +302,9 @@ def plan(
     keys = jax.random.split(key, o.iterations) if o.iterations > 1 else [key]
     for it in range(o.iterations):
         noise = perturbations(keys[it], o) * sigma
-        seqs = clip_actions(jnp.concatenate([mean[None], mean[None] + noise]), cfg, o.speed_cap, o.position_deadband)
+        seqs = clip_actions(
+            jnp.concatenate([mean[None], mean[None] + noise]), cfg, o.speed_cap, o.position_deadband
+        )
         states, cost = evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg, o)
         costs.append(cost)
         i = jnp.argmin(cost)
@@ -345,4 +354,6 @@ def make(cfg: Config, options: SamplingOptions | None = None) -> planning.Planne
         a, info = plan(key, model, obs.window, obs.belt_speed, obs.target_yaw, nominal, cfg, o)
         return a, shift_nominal(info.nominal), info
 
-    return planning.Planner("sampling", lambda obs: initial_nominal(cfg, o, obs.belt_speed), jax.jit(optimize))
+    return planning.Planner(
+        "sampling", lambda obs: initial_nominal(cfg, o, obs.belt_speed), jax.jit(optimize)
+    )

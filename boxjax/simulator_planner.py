@@ -74,7 +74,7 @@ class SimulatorOptions:
     nthread: Python threads stepping the candidates (None: all cores).
     """
 
-    sampling: sp.SamplingOptions = sp.SamplingOptions(n_samples=32, horizon=10)
+    sampling: sp.SamplingOptions = sp.SamplingOptions(n_samples=32, horizon=10, gradient_steps=0)
     w_fail: float = 1.0e4
     nthread: int | None = None
 

@@ -44,12 +44,16 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", help="write evaluation.json and boxes.npz here (for `boxjax rotate --replay`)")
     args = ap.parse_args(argv)
     try:
-        ctrl = ControllerConfig(sampling=SamplingOptions(**_pairs(args.sampling, "sampling")),
-                                **_pairs(args.controller, "controller"))
+        ctrl = ControllerConfig(
+            sampling=SamplingOptions(**_pairs(args.sampling, "sampling")),
+            **_pairs(args.controller, "controller"),
+        )
     except (TypeError, ValueError) as e:
         sys.stderr.write(f"planner_study: error: {e}\n")
         raise SystemExit(2) from e
-    ev = experiments.evaluate(DEFAULT, args.boxes, args.hazardous, args.seed, estimator=args.estimator, ctrl=ctrl)
+    ev = experiments.evaluate(
+        DEFAULT, args.boxes, args.hazardous, args.seed, estimator=args.estimator, ctrl=ctrl
+    )
     if args.out:
         experiments.write_evaluation(ev, args.out, " ".join(["python", *sys.argv]))
     out = {**ev.summary, "failed": [r["index"] for r in ev.rows if r["outcome"] != "success"]}

@@ -41,18 +41,50 @@ def test_boxes_come_from_the_seed_and_follow_their_labels():
 
 def test_summary_counts_and_interval():
     rows = [
-        {"hazardous": False, "outcome": "success", "steps": 200, "max_balance_error_m": 0.01, "lost_exploring": False},
-        {"hazardous": False, "outcome": "unbalanced", "steps": 90, "max_balance_error_m": 0.05, "lost_exploring": False},
-        {"hazardous": False, "outcome": "aborted", "steps": 45, "max_balance_error_m": 0.002, "lost_exploring": False},
-        {"hazardous": True, "outcome": "aborted", "steps": 45, "max_balance_error_m": 0.01, "lost_exploring": False},
-        {"hazardous": True, "outcome": "step_cap", "steps": 600, "max_balance_error_m": 0.03, "lost_exploring": False},
+        {
+            "hazardous": False,
+            "outcome": "success",
+            "steps": 200,
+            "max_balance_error_m": 0.01,
+            "lost_exploring": False,
+        },
+        {
+            "hazardous": False,
+            "outcome": "unbalanced",
+            "steps": 90,
+            "max_balance_error_m": 0.05,
+            "lost_exploring": False,
+        },
+        {
+            "hazardous": False,
+            "outcome": "aborted",
+            "steps": 45,
+            "max_balance_error_m": 0.002,
+            "lost_exploring": False,
+        },
+        {
+            "hazardous": True,
+            "outcome": "aborted",
+            "steps": 45,
+            "max_balance_error_m": 0.01,
+            "lost_exploring": False,
+        },
+        {
+            "hazardous": True,
+            "outcome": "step_cap",
+            "steps": 600,
+            "max_balance_error_m": 0.03,
+            "lost_exploring": False,
+        },
     ]
     s = experiments.summarize(rows)
     assert (s["safe_boxes"], s["safe_success"], s["false_aborts"]) == (3, 1, 1)
     assert s["failures"] == {"unbalanced": 1}
     assert (s["hazardous_boxes"], s["hazard_aborted"], s["hazard_recall"]) == (2, 1, 0.5)
     assert s["safe_success_ci95"] == list(experiments.wilson_interval(1, 3))
-    assert s["max_balance_error_m"] == pytest.approx({"median": 0.03, "max": 0.05})  # refused ones not counted
+    assert s["max_balance_error_m"] == pytest.approx(
+        {"median": 0.03, "max": 0.05}
+    )  # refused ones not counted
 
 
 def test_a_box_lost_while_exploring_is_an_outcome_not_an_exception():
@@ -73,11 +105,34 @@ def test_a_box_lost_while_exploring_is_an_outcome_not_an_exception():
 def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path, capsys):
     out = tmp_path / "ev"
     png = tmp_path / "ev.png"
-    argv = ["evaluate", "--boxes", "2", "--hazardous", "1", "--seed", "3", "--out", str(out), "--plot", str(png)]
+    argv = [
+        "evaluate",
+        "--boxes",
+        "2",
+        "--hazardous",
+        "1",
+        "--seed",
+        "3",
+        "--out",
+        str(out),
+        "--plot",
+        str(png),
+    ]
     assert main([*argv, "--quiet", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    for k in ("safe_boxes", "safe_success", "safe_success_rate", "safe_success_ci95", "false_aborts", "failures",
-              "hazardous_boxes", "hazard_aborted", "steps_success", "max_balance_error_m", "wall_s"):
+    for k in (
+        "safe_boxes",
+        "safe_success",
+        "safe_success_rate",
+        "safe_success_ci95",
+        "false_aborts",
+        "failures",
+        "hazardous_boxes",
+        "hazard_aborted",
+        "steps_success",
+        "max_balance_error_m",
+        "wall_s",
+    ):
         assert k in summary, k
     assert summary["safe_boxes"] == 2 and summary["hazardous_boxes"] == 1
     doc = json.loads((out / "evaluation.json").read_text())
@@ -100,6 +155,8 @@ def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path
         (["evaluate", "--boxes", "3", "--hazardous", "-1"], "--hazardous"),
         (["evaluate", "--boxes", "3", "--samples", "20"], "paper planner"),
         (["rotate", "--index", "2"], "--replay"),
+        (["evaluate", "--boxes", "3", "--planner", "paper", "--gradient-steps", "5"], "sampling planner"),
+        (["evaluate", "--boxes", "3", "--gradient-steps", "-1"], "--gradient-steps"),
         (["rotate", "--replay", "/nonexistent/dir", "--index", "0"], "no such"),
     ],
 )

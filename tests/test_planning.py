@@ -17,7 +17,9 @@ OBS = planning.observation(prior.initial_window(S0), jnp.zeros(2), jnp.pi / 2)
 
 
 def _model(name="A"):
-    return prior.make_prior(massdist.voxel_masses(massdist.named(name, CFG.box), CFG.box), None, CFG.box, CFG.gripper)
+    return prior.make_prior(
+        massdist.voxel_masses(massdist.named(name, CFG.box), CFG.box), None, CFG.box, CFG.gripper
+    )
 
 
 def test_paper_planner_through_the_interface_is_the_paper_planner():
@@ -31,7 +33,7 @@ def test_paper_planner_through_the_interface_is_the_paper_planner():
 
 
 def test_sampling_planner_state_is_the_shifted_nominal():
-    o = sp.SamplingOptions(n_samples=8, horizon=4)
+    o = sp.SamplingOptions(n_samples=8, horizon=4, gradient_steps=0)
     mpc = sp.make(CFG, o)
     st0 = mpc.init(OBS)
     assert st0.shape == (4, 4)
@@ -51,7 +53,9 @@ def test_drift_corrected_model_adds_k_times_the_drift_and_the_observer_integrate
     drift = jnp.array([1e-3, -2e-3, 0.01], jnp.float32)
     acts = jnp.tile(jnp.array([[0.05, -0.05, 0.0, 0.0]]), (3, 1))
     base = np.asarray(model.rollout_sequence(OBS.window, OBS.belt_speed, acts))
-    corr = np.asarray(planning.DriftCorrected(model, drift).rollout_sequence(OBS.window, OBS.belt_speed, acts))
+    corr = np.asarray(
+        planning.DriftCorrected(model, drift).rollout_sequence(OBS.window, OBS.belt_speed, acts)
+    )
     np.testing.assert_allclose(corr[:, :2], base[:, :2])
     np.testing.assert_allclose(corr[:, 2:] - base[:, 2:], np.outer([1, 2, 3], np.asarray(drift)), atol=1e-6)
     first = planning.predict_first(model, OBS.window, OBS.belt_speed, acts[0])
@@ -59,4 +63,6 @@ def test_drift_corrected_model_adds_k_times_the_drift_and_the_observer_integrate
     observed = base[0] + np.array([0, 0, 4e-3, 0, 0.02])
     new = planning.update_drift(jnp.zeros(3), base[0], observed, 0.5)
     np.testing.assert_allclose(np.asarray(new), [2e-3, 0.0, 0.01], atol=1e-6)
-    assert np.asarray(model.stability_margin(S0)) == np.asarray(planning.DriftCorrected(model, drift).stability_margin(S0))
+    assert np.asarray(model.stability_margin(S0)) == np.asarray(
+        planning.DriftCorrected(model, drift).stability_margin(S0)
+    )

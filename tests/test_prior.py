@@ -270,7 +270,9 @@ def test_normal_loads_with_friction_moment_closed_form():
     moment = (n[..., None] * np.asarray(c.offsets)).sum(axis=(0, 1))
     np.testing.assert_allclose(moment, -h * np.asarray(f), atol=2e-3 * float(model.mass))
     assert n[1].sum() > n[0].sum() + 0.5  # N: the +y belt (2) carries more
-    np.testing.assert_allclose(prior.normal_loads(model, c, jnp.zeros(2)), prior.normal_loads(model, c), atol=1e-5)
+    np.testing.assert_allclose(
+        prior.normal_loads(model, c, jnp.zeros(2)), prior.normal_loads(model, c), atol=1e-5
+    )
 
 
 def test_normal_loads_per_belt_match_mujoco_at_rest():

@@ -14,7 +14,7 @@ from boxjax.config import DEFAULT
 
 CFG = DEFAULT
 G = CFG.gripper
-OPTS = sp.SamplingOptions(n_samples=16, horizon=6)
+OPTS = sp.SamplingOptions(n_samples=16, horizon=6, gradient_steps=0)
 
 
 def _model(name="uniform"):
@@ -34,7 +34,11 @@ def test_rollout_sequence_feeds_predictions_back_step_by_step():
     acts = jnp.array([[0.12, -0.08, 0.0, 0.004], [0.1, -0.1, 0.0, 0.0], [0.0, 0.0, -0.01, 0.0]], jnp.float32)
     for carry in (True, False):
         model = prior.make_prior(
-            massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box), None, CFG.box, G, carry_velocity=carry
+            massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box),
+            None,
+            CFG.box,
+            G,
+            carry_velocity=carry,
         )
         seq = np.asarray(prior.rollout_sequence(model, WINDOW, jnp.zeros(2), acts))
         w, b, u, f = WINDOW, jnp.zeros(2), None, None
@@ -43,10 +47,14 @@ def test_rollout_sequence_feeds_predictions_back_step_by_step():
             if carry:
                 u, f = info["velocity"], info["friction"]
             else:
-                np.testing.assert_allclose(np.asarray(s), np.asarray(prior.predict(model, w, b, a)), atol=1e-7)
+                np.testing.assert_allclose(
+                    np.asarray(s), np.asarray(prior.predict(model, w, b, a)), atol=1e-7
+                )
             np.testing.assert_allclose(seq[k], np.asarray(s), atol=1e-5)  # m, rad: float32 (scan vs eager)
             w, b = jnp.concatenate([w[1:], s[None]]), prior.next_belt_speed(model, b, a)
-        np.testing.assert_allclose(seq[0], np.asarray(prior.predict(model, WINDOW, jnp.zeros(2), acts[0])), atol=1e-6)
+        np.testing.assert_allclose(
+            seq[0], np.asarray(prior.predict(model, WINDOW, jnp.zeros(2), acts[0])), atol=1e-6
+        )
         held = prior.rollout(model, WINDOW, jnp.zeros(2), acts[0], 2, brake_steps=1)
         np.testing.assert_allclose(np.asarray(held[0]), seq[0], atol=1e-6)
 
@@ -143,7 +151,11 @@ def test_support_deficit_hand_computed():
 
 @pytest.mark.parametrize(
     "update, extra",
-    [("mppi", {}), ("cem", {"iterations": 2}), ("best", {"gradient_steps": 3, "n_knots": 3})],
+    [
+        ("mppi", {"gradient_steps": 0}),
+        ("cem", {"iterations": 2, "gradient_steps": 0}),
+        ("best", {"gradient_steps": 3, "n_knots": 3}),
+    ],
 )
 def test_planner_updates_never_lose_the_nominal_and_are_deterministic(update, extra):
     """MPPI, CEM (two rounds) and gradient refinement: the plan's cost under the model is never above the
@@ -164,10 +176,12 @@ def test_planner_updates_never_lose_the_nominal_and_are_deterministic(update, ex
 
 def test_gradient_refinement_lowers_the_cost_of_a_poor_sequence():
     """From a sequence that turns the wrong way, Adam steps through the prior lower its cost."""
-    o = sp.SamplingOptions(n_samples=4, horizon=6, gradient_steps=8)
+    o = sp.SamplingOptions(n_samples=4, horizon=6, gradient_steps=8, gradient_lr=1.0)
     model = _model("uniform")
     bad = jnp.tile(jnp.array([[-0.08, 0.08, 0.0, 0.0]]), (6, 1))
-    c0 = float(sp.rollout_cost(model, model.rollout_sequence(WINDOW, jnp.zeros(2), bad), bad, jnp.pi / 2, CFG, o))
+    c0 = float(
+        sp.rollout_cost(model, model.rollout_sequence(WINDOW, jnp.zeros(2), bad), bad, jnp.pi / 2, CFG, o)
+    )
     seq, c = jax.jit(lambda x: sp.refine_gradient(model, WINDOW, jnp.zeros(2), jnp.pi / 2, x, CFG, o))(bad)
     assert float(c) < 0.99 * c0
     assert np.all(np.abs(np.asarray(seq)[:, :2]) <= o.speed_cap + 1e-6)
@@ -191,7 +205,9 @@ def test_pose_cost_l1_and_quadratic_hand_computed():
     s = S0.at[geometry.YAW].set(np.pi / 2 - e)[None]
     acts = jnp.zeros((1, 4))
     base = dict(w_balance=0.0, w_effort=0.0, w_barrier=0.0, horizon=1)
-    q = float(sp.rollout_cost(_model(), s, acts, np.pi / 2, CFG, sp.SamplingOptions(pose_cost="quadratic", **base)))
+    q = float(
+        sp.rollout_cost(_model(), s, acts, np.pi / 2, CFG, sp.SamplingOptions(pose_cost="quadratic", **base))
+    )
     l1 = float(sp.rollout_cost(_model(), s, acts, np.pi / 2, CFG, sp.SamplingOptions(pose_cost="l1", **base)))
     np.testing.assert_allclose(q, e**2, rtol=1e-4)
     np.testing.assert_allclose(l1, np.sqrt(e**2 + d**2) - d, rtol=1e-4)

@@ -10,7 +10,7 @@ from boxjax.config import DEFAULT as CFG
 from boxjax.sampling_planner import SamplingOptions
 from boxjax.sim import make_env
 
-SMALL = simp.SimulatorOptions(sampling=SamplingOptions(n_samples=6, horizon=4), nthread=2)
+SMALL = simp.SimulatorOptions(sampling=SamplingOptions(n_samples=6, horizon=4, gradient_steps=0), nthread=2)
 
 
 @pytest.fixture(scope="module")
