@@ -100,7 +100,8 @@ def test_cost_tip_barrier_is_the_stability_margin_shortfall():
 
 
 def test_plans_from_rest_turn_the_box_the_right_way_and_respect_limits():
-    """From rest, the plans towards yaw + pi/2 run belt 1 (left, y < 0) faster forwards (+x) than belt 2:
+    """From rest, the plans towards yaw + pi/2 run belt 1 (left, y < 0) faster forwards (+x) than belt 2
+    on average over the plan:
     that turns the box counter-clockwise (paper Fig. 1), and the predicted yaw grows. Every action is
     within the limits. (Default options: the planner the controller uses.)"""
     o = sp.SamplingOptions()
@@ -112,8 +113,8 @@ def test_plans_from_rest_turn_the_box_the_right_way_and_respect_limits():
         key, k = jax.random.split(key)
         a, info = plan(k, model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
         nominal = sp.shift_nominal(info.nominal)
-    a, states = np.asarray(a), np.asarray(info.states)
-    assert a[0] - a[1] > 0.02, a
+    a, states, plan_seq = np.asarray(a), np.asarray(info.states), np.asarray(info.nominal)
+    assert np.mean(plan_seq[:, 0] - plan_seq[:, 1]) > 0.02, plan_seq  # m/s, over the planned 0.5 s
     assert states[-1, geometry.YAW] > 0.01, states[-1]  # rad, turning the right way
     assert np.all(np.abs(a[:2]) <= o.speed_cap + 1e-7) and np.all(np.abs(a[2:]) <= G.max_position_step + 1e-7)
     assert float(info.yaw_error) < 0  # still short of the target after 0.5 s from rest
