@@ -56,6 +56,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from boxjax import geometry, planner, planning
 from boxjax.config import Config
@@ -254,8 +255,6 @@ def refine_gradient(model, window, belt_speed, target_yaw, seq, cfg: Config, o: 
     """`o.gradient_steps` Adam steps (optax) on the rollout cost w.r.t. the sequence (H, 4), through the
     differentiable prior, projected onto the action limits after each step. Returns (sequence, cost) of
     the best iterate (the start included), so refining never makes the plan worse under the model."""
-    import optax
-
     def cost_of(x):
         st = model.rollout_sequence(window, belt_speed, x)
         return rollout_cost(model, st, x, target_yaw, cfg, o)
