@@ -287,21 +287,26 @@ def plot_evaluation(ev, path, cfg=DEFAULT, title: str | None = None) -> str:
         colour, marker = _OUTCOME_STYLE.get(out, ("k", "."))
         pts = np.asarray([r["com_cm"][:2] for r in ev.rows if r["outcome"] == out])
         haz = np.asarray([r["hazardous"] for r in ev.rows if r["outcome"] == out])
-        ax_m.scatter(
-            pts[:, 0],
-            pts[:, 1],
-            c=colour,
-            marker=marker,
-            s=22,
-            label=f"{out} ({len(pts)})",
-            edgecolors="k" if marker not in ("x",) else None,
-            linewidths=np.where(haz, 1.2, 0.0),
-        )
+        label = f"{out} ({len(pts)})"
+        if marker == "x":  # unfilled: the stroke is the marker, so hazardous boxes are drawn larger instead
+            ax_m.scatter(pts[:, 0], pts[:, 1], c=colour, marker=marker, s=np.where(haz, 60, 28), label=label)
+        else:
+            edge = np.where(haz, 1.2, 0.0)
+            ax_m.scatter(
+                pts[:, 0],
+                pts[:, 1],
+                c=colour,
+                marker=marker,
+                s=22,
+                label=label,
+                edgecolors="k",
+                linewidths=edge,
+            )
     ax_m.set_aspect("equal")
     ax_m.set_xlabel("centre of mass x (cm, box frame)")
     ax_m.set_ylabel("centre of mass y (cm)")
     ax_m.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
-    ax_m.set_title("outcome by centre of mass (shaded: U1..U4; outlined: hazardous)", fontsize=10)
+    ax_m.set_title("outcome by centre of mass\n(shaded: U1..U4; outlined / large: hazardous)", fontsize=10)
     if title:
         fig.suptitle(title, fontsize=11)
     return save_figure(fig, path)
