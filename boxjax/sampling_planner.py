@@ -319,11 +319,13 @@ def plan(
         best_seq, best_states = jnp.where(better, mean, best_seq), jnp.where(better, st_m[0], best_states)
         best_cost = jnp.where(better, c_m[0], best_cost)
     if o.gradient_steps > 0:
-        seq_g, c_g = refine_gradient(model, window, belt_speed, target_yaw, best_seq, cfg, o)
-        better = c_g < best_cost
-        best_seq = jnp.where(better, seq_g, best_seq)
-        best_states = jnp.where(better, model.rollout_sequence(window, belt_speed, seq_g), best_states)
-        best_cost = jnp.where(better, c_g, best_cost)
+        seq_g, _ = refine_gradient(model, window, belt_speed, target_yaw, best_seq, cfg, o)
+        # The deadband is not differentiable: apply it to the refined sequence and score what is sent.
+        seq_g = clip_actions(seq_g, cfg, o.speed_cap, o.position_deadband)
+        st_g, c_g = evaluate_sequences(model, window, belt_speed, target_yaw, seq_g[None], cfg, o)
+        better = c_g[0] < best_cost
+        best_seq, best_states = jnp.where(better, seq_g, best_seq), jnp.where(better, st_g[0], best_states)
+        best_cost = jnp.where(better, c_g[0], best_cost)
     cost = jnp.concatenate(costs)
     info = SamplingInfo(
         nominal=best_seq,
