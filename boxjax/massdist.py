@@ -553,16 +553,26 @@ def named(name: str, box: BoxConfig = DEFAULT.box) -> MassDistribution:
         return MassDistribution(jnp.ones(box.grid, jnp.float32), jnp.asarray(5.0, jnp.float32))
     if name not in _NAMED:
         raise ValueError(f"unknown mass distribution {name!r}; valid names are {', '.join(NAMES)}")
-    p = _NAMED[name]
-    c = _voxel_centres64(box)
-    z = (c[..., None, :] - np.asarray(p.means)) / np.asarray(p.stds)
-    rho = np.sum(np.asarray(p.weights) * np.exp(-0.5 * np.sum(z * z, axis=-1)), axis=-1)
-    allowed = np.ones(box.grid, bool) if p.region is None else _region_masks(box)[p.region]
-    rho = np.where(allowed, rho, -1.0)
     # Every voxel's density is >= 1e-4 x max away from the threshold (default and 12 x 12 x 6 grids), so
     # rounding differences between platforms cannot flip a voxel.
-    occ = allowed & (rho >= p.threshold * rho.max())
-    return MassDistribution(jnp.asarray(occ, jnp.float32), jnp.asarray(p.total_mass, jnp.float32))
+    return from_mixture(*_NAMED[name], box=box)
+
+
+def from_mixture(means, stds, weights, threshold, total_mass, region=None, box: BoxConfig = DEFAULT.box):
+    """A distribution from explicit mixture parameters, voxelised as `named` does (float64 numpy).
+
+    Args:
+      means, stds: (G, 3) m, box frame; weights: (G,) peak heights; threshold: a voxel is occupied when
+        the mixture at its centre is >= threshold x the maximum over the allowed voxels; total_mass: kg;
+      region: None (the whole box) or 0..3 to confine the mass to U1..U4.
+    """
+    c = _voxel_centres64(box)
+    z = (c[..., None, :] - np.asarray(means, np.float64)) / np.asarray(stds, np.float64)
+    rho = np.sum(np.asarray(weights, np.float64) * np.exp(-0.5 * np.sum(z * z, axis=-1)), axis=-1)
+    allowed = np.ones(box.grid, bool) if region is None else _region_masks(box)[region]
+    rho = np.where(allowed, rho, -1.0)
+    occ = allowed & (rho >= threshold * rho.max())
+    return MassDistribution(jnp.asarray(occ, jnp.float32), jnp.asarray(total_mass, jnp.float32))
 
 
 def iou(occ_a, occ_b) -> jax.Array:

@@ -95,3 +95,51 @@ def test_estimator_eval_on_mjx(capsys):
     assert main(["estimator-eval", "--boxes", "4", "--backend", "mjx", "--chunk", "2", "--json"]) == 0
     res = _last_json(capsys)
     assert res["boxes"] == 4 and 0 <= res["iou_median"] <= 1 and res["mass_rel_error_median"] < 0.5
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["rotate", "--samples", "-3"], "--samples is an option of the paper planner (--planner paper)"),
+        (["rotate", "--horizon", "0"], "--horizon is an option of the paper planner"),
+        (["rotate", "--rule", "weighted"], "it does nothing with --planner sampling"),
+        (["rotate", "--planner", "paper", "--samples", "-3"], "--samples must be >= 1, got -3"),
+        (["rotate", "--planner", "paper", "--horizon", "0"], "--horizon must be >= 1, got 0"),
+        (["rotate", "--planner", "paper", "--gradient-steps", "2"], "option of the sampling planner"),
+        (["rotate", "--weights", "h.npz"], "--weights is an option of --estimator learned"),
+        (["rotate", "--calibration", "c.npz"], "--calibration is an option of --variant paper"),
+        (["rotate", "--adapt-every", "5"], "--adapt-every is an option of --model blackbox"),
+        (
+            ["rotate", "--model", "blackbox", "--estimator", "learned"],
+            "--estimator is an option of --model prior",
+        ),
+        (["rotate", "--model", "blackbox", "--adapt-epochs", "-1"], "--adapt-epochs must be >= 0"),
+        (
+            ["rotate", "--replay", "ev", "--index", "0", "--planner", "paper"],
+            "--planner does nothing with --replay",
+        ),
+        (["rotate", "--replay", "ev", "--index", "0", "--config", "c.toml"], "DIR/config.toml"),
+        (["rotate", "--replay", "ev"], "--replay DIR needs --index K"),
+        (["simulate", "--policy", "random", "--speed", "0.1"], "--speed is an option of --policy naive"),
+        (["simulate", "--steps", "0"], "--steps must be >= 1, got 0"),
+        (["evaluate", "--force"], "--force does nothing without --out"),
+        (["evaluate", "--hazard-family", "items"], "does nothing with --hazardous 0"),
+        (["evaluate", "--box", "b.npz", "--hazardous", "3"], "--hazardous does nothing with --box"),
+        (["evaluate", "--weights", "h.npz"], "--weights is an option of --estimator learned"),
+        (["compare", "--methods", "prior", "--adapt-every", "3"], "is an option of --methods blackbox"),
+        (["train-estimator", "--out", "x", "--boxes", "5"], "--boxes must be >= 10"),
+        (["calibrate", "--out", "x.npz", "--transitions", "4"], "--transitions must be >= 8"),
+    ],
+)
+def test_an_option_that_does_nothing_is_refused(argv, message, capsys):
+    """Every option acts or is refused, saying who uses it (one mechanism: boxjax.cli_args)."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
+
+def test_help_shows_the_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["rotate", "--help"])
+    out = capsys.readouterr().out
+    assert "(default 50)" in out and "--animate" in out and "--config" in out and "--box" in out
