@@ -25,8 +25,14 @@ CLI_SETTINGS = "cli.json"  # evaluate --out DIR: what the CLI adds to the evalua
 
 
 def load_config(args):
-    """The Config of --config (the defaults without it)."""
+    """The Config of --config (the defaults without it); also checks an --animate path up front, so a
+    bad one is refused before the episode runs."""
     from boxjax.config import DEFAULT
+
+    if getattr(args, "animate", None):
+        from boxjax.animate import check_path
+
+        check_path(args.animate)
 
     if getattr(args, "config", None) is None:
         return DEFAULT
@@ -60,8 +66,14 @@ def _figures(args, summary: dict, trace, cfg, truth, title: str) -> None:
     if getattr(args, "animate", None):
         from boxjax.animate import animate_episode
 
+        if summary.get("success"):
+            outcome = "success"
+        elif summary.get("aborted"):
+            outcome = "refused (hazardous)"
+        else:
+            outcome = summary.get("failed_reason") or "not finished"
         t0 = time.perf_counter()
-        summary["animation"] = animate_episode(trace, args.animate, cfg, truth, title=title)
+        summary["animation"] = animate_episode(trace, args.animate, cfg, truth, title=title, outcome=outcome)
         summary["animation_s"] = time.perf_counter() - t0
 
 
@@ -223,7 +235,6 @@ def _replay(args) -> dict:
     """`rotate --replay DIR --index K`: box K of an evaluation, with its key, estimator, controller and
     (from DIR/cli.json) the config, box file and estimator weights it ran with."""
     from boxjax import experiments, massdist
-    from boxjax.config import DEFAULT
 
     if args.index is None:
         raise ValueError("--replay DIR needs --index K (the box's row in DIR/evaluation.json)")
@@ -231,7 +242,7 @@ def _replay(args) -> dict:
     if os.path.isfile(os.path.join(args.replay, CLI_SETTINGS)):
         with open(os.path.join(args.replay, CLI_SETTINGS)) as f:
             extra = json.load(f)
-    cfg = DEFAULT
+    cfg = load_config(args)  # the defaults (--config is refused with --replay); checks --animate
     if os.path.isfile(os.path.join(args.replay, "config.toml")):
         from boxjax import config_io
 

@@ -56,7 +56,9 @@ def plot_mass_distribution(
     ax.set_xlim(-hx, hx)
     ax.set_ylim(-hy, hy)
     ax.set_zlim(-hz, hz)
-    ax.set_box_aspect((2 * hx, 2 * hy, 2 * hz))
+    # zoom < 1 keeps the tick and axis labels inside the axes' own box, so that a layout engine can keep
+    # them off the neighbouring plots (a 3-D axes draws its labels outside the box it reports).
+    ax.set_box_aspect((2 * hx, 2 * hy, 2 * hz), zoom=0.9)
     ax.set_xlabel("x, length (cm)")
     ax.set_ylabel("y, width (cm)")
     ax.set_zlabel("z (cm)")
@@ -164,7 +166,7 @@ def plot_demo(
     """One figure of a whole episode: true vs estimated voxel grids (paper Fig. 2 c, d) beside the yaw and
     the balance error over time."""
     fig = _figure((12, 6.5))
-    grid = fig.add_gridspec(2, 3)
+    grid = fig.add_gridspec(2, 3, width_ratios=(1.6, 1, 1))
     plot_mass_distribution(fig.add_subplot(grid[0, 0], projection="3d"), truth, box, title="ground truth")
     plot_mass_distribution(
         fig.add_subplot(grid[1, 0], projection="3d"), belief, box, title="estimate", color="tab:orange"
