@@ -125,6 +125,23 @@ class _Scene:
         self.text = ax.text(
             0.0, 1.02, "", transform=ax.transAxes, fontsize=9, va="bottom", family="monospace"
         )
+        self.legend = ax.get_legend()
+        # what moves from frame to frame; everything else (axes, ticks, labels, title) is drawn once
+        self.dynamic = [
+            *self.belts,
+            *self.stripes,
+            *(c for ends in self.carriages for c in ends),
+            self.corridor,
+            self.midline,
+            self.target_box,
+            self.box,
+            self.face,
+            self.track,
+            self.centre,
+            self.com_dot,
+            self.legend,
+            self.text,
+        ]
         if title:
             fig.suptitle(title, fontsize=10, y=0.985)
 
@@ -173,6 +190,32 @@ class _Scene:
         self.text.set_color("tab:red" if over else "k")
 
 
+class _BlitWriter:
+    """Blitting for the animation: the static background is rasterised once; each frame restores it and
+    draws only the moving artists (the axes' ticks and labels cost most of a full redraw)."""
+
+    def __init__(self, scene: _Scene, dpi: int):
+        self.scene = scene
+        fig = scene.fig
+        fig.set_dpi(dpi)
+        for a in scene.dynamic:
+            a.set_animated(True)
+        fig.canvas.draw()
+        self.background = fig.canvas.copy_from_bbox(fig.bbox)
+
+    def frame(self, i: int):
+        """The RGB PIL image of control step i."""
+        from PIL import Image
+
+        canvas = self.scene.fig.canvas
+        canvas.restore_region(self.background)
+        self.scene.draw(i)
+        for a in self.scene.dynamic:
+            self.scene.ax.draw_artist(a)
+        w, h = canvas.get_width_height()
+        return Image.frombuffer("RGBA", (w, h), canvas.buffer_rgba(), "raw", "RGBA", 0, 1).convert("RGB")
+
+
 def _frames(n: int, max_frames: int) -> np.ndarray:
     stride = max(1, math.ceil(n / max_frames))
     idx = np.arange(0, n, stride)
@@ -216,11 +259,12 @@ def animate_episode(
     idx = _frames(len(scene), max_frames)
     stride = int(idx[1] - idx[0]) if len(idx) > 1 else 1
     writer = PillowWriter(fps=1.0 / (stride * cfg.gripper.control_dt))
+    blit = _BlitWriter(scene, dpi)
     with atomic_path(path, suffix=".gif") as tmp:
         with writer.saving(scene.fig, tmp, dpi):
-            for i in idx:
-                scene.draw(int(i))
-                writer.grab_frame()
+            # PillowWriter's own grab_frame re-renders the whole figure; its frame list takes the blitted
+            # images instead, and its finish() writes the GIF.
+            writer._frames.extend(blit.frame(int(i)) for i in idx)
     return path
 
 
