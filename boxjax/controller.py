@@ -173,6 +173,86 @@ def make_planner(cfg: Config, ctrl: ControllerConfig) -> planning.Planner:
     )
 
 
+def decide(cfg: Config, truth: massdist.MassDistribution, exploration: dict, estimator: Any):
+    """The belief after the exploration and the decision on it: (est dict, belief, why). `why` is None
+    when the box is to be turned, else the refusal in words (paper §4.2, plus the physics rule's reading
+    when the estimator gives one)."""
+    est = oracle_estimator(truth, cfg) if estimator == "oracle" else estimator(exploration)
+    belief = massdist.validate(est["distribution"], cfg.box)
+    why = hazard_explanation(belief, cfg, bool(est["hazardous"]), est.get("hazard_prob"))
+    if why is not None and est.get("hazard_explanation"):  # the physics rule's reading (boxjax.hazard)
+        why = f"{why} Physics rule: {est['hazard_explanation']}"
+    return est, belief, why
+
+
+def planning_model(cfg: Config, ctrl: ControllerConfig, belief: massdist.MassDistribution, force_map=None):
+    """The physics prior (`ctrl.variant`) on the belief: the model the planners plan with."""
+    if ctrl.variant == "paper" and force_map is None:
+        from boxjax.calibrate import default_force_map
+
+        force_map = default_force_map(cfg)
+    return prior.make_prior(
+        massdist.voxel_masses(belief, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
+    )
+
+
+def first_window(s) -> list:
+    """The planner's first state window: the last prior.MIN_WINDOW states of `s` (T+1, 5), the oldest
+    repeated when the episode is shorter (no exploration)."""
+    window = list(np.asarray(s)[-prior.MIN_WINDOW :])
+    while len(window) < prior.MIN_WINDOW:
+        window.insert(0, window[0])
+    return window
+
+
+def episode_summary(
+    cfg: Config,
+    truth: massdist.MassDistribution,
+    final: dict,
+    est: dict,
+    belief,
+    why: str | None,
+    *,
+    n_explore: int,
+    lost_exploring: bool,
+    wall_s: float,
+    plan_ms: list,
+    adapt_s: float = 0.0,
+    adaptations: int = 0,
+    estimator: Any = "oracle",
+) -> dict:
+    """An episode's summary (plain data; the CLI's JSON) from the final state's `State.summary()`."""
+    aborted = why is not None
+    timed = plan_ms[1:] if len(plan_ms) > 1 else plan_ms  # the first call compiles
+    summary = {
+        "success": bool(final["success"]) and not aborted,
+        "aborted": aborted,
+        "abort_reason": why,
+        "failed_reason": None if aborted else final["failed_reason"],
+        "steps": final["steps"],
+        "exploration_steps": n_explore,
+        "max_balance_error_m": final["max_balance_error_m"],
+        "final_yaw_error_rad": final["final_yaw_error_rad"],
+        "wall_s": wall_s,
+        "plan_ms_median": statistics.median(timed) if timed else None,
+        "truth_hazardous": bool(massdist.is_hazardous(truth, cfg.box)),
+        "lost_exploring": lost_exploring,
+        "adapt_s": adapt_s,
+        "adaptations": adaptations,
+    }
+    if estimator != "oracle" and belief is not None:
+        from boxjax.estimator import com_error_cm
+
+        summary["iou"] = float(massdist.iou(belief.occupancy, truth.occupancy))
+        summary["mass_error_kg"] = float(belief.total_mass - truth.total_mass)
+        summary["com_error_cm"] = float(com_error_cm(belief, truth, cfg.box))
+        if est.get("hazard_prob") is not None:
+            summary["hazard_prob"] = float(est["hazard_prob"])
+    if not aborted and not final["done"]:
+        summary["failed_reason"] = task.REASONS[task.STEP_CAP]
+    return summary
+
+
 def run_episode(
     cfg: Config,
     truth: massdist.MassDistribution,
@@ -236,28 +316,15 @@ def run_episode(
     lost_exploring = bool(state.done)
     est, belief, why = {}, None, None
     if not lost_exploring and model is None:
-        est = oracle_estimator(truth, cfg) if estimator == "oracle" else estimator(exploration)
-        belief = massdist.validate(est["distribution"], cfg.box)
-        # 3. refuse when hazardous
-        why = hazard_explanation(belief, cfg, bool(est["hazardous"]), est.get("hazard_prob"))
-        if why is not None and est.get("hazard_explanation"):  # the physics rule's reading (boxjax.hazard)
-            why = f"{why} Physics rule: {est['hazard_explanation']}"
+        est, belief, why = decide(cfg, truth, exploration, estimator)  # 3. refuse when hazardous
     plan_ms: list[float] = []
     adapt_s, adaptations = 0.0, 0
     if why is None and not lost_exploring:
         # 4. physics-prior MPC
-        if ctrl.variant == "paper" and force_map is None:
-            from boxjax.calibrate import default_force_map
-
-            force_map = default_force_map(cfg)
         if model is None:
-            model = prior.make_prior(
-                massdist.voxel_masses(belief, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
-            )
+            model = planning_model(cfg, ctrl, belief, force_map)
         mpc = make_planner(cfg, ctrl)
-        window = list(exploration["s"][-prior.MIN_WINDOW :])
-        while len(window) < prior.MIN_WINDOW:
-            window.insert(0, window[0])
+        window = first_window(exploration["s"])
 
         def observe(state):
             w = prior.check_window(np.asarray(window[-prior.MIN_WINDOW :]))
@@ -293,33 +360,9 @@ def run_episode(
     wall = time.perf_counter() - t_start
 
     trace = EpisodeTrace.from_states(rows, actions, cfg.gripper.control_dt, wall)
-    aborted = why is not None
-    s = state.summary()
+    summary = episode_summary(
+        cfg, truth, state.summary(), est, belief, why, n_explore=n_explore, lost_exploring=lost_exploring,
+        wall_s=wall, plan_ms=plan_ms, adapt_s=adapt_s, adaptations=adaptations, estimator=estimator,
+    )  # fmt: skip
     timed = plan_ms[1:] if len(plan_ms) > 1 else plan_ms  # the first call compiles
-    summary = {
-        "success": bool(s["success"]) and not aborted,
-        "aborted": aborted,
-        "abort_reason": why,
-        "failed_reason": None if aborted else s["failed_reason"],
-        "steps": s["steps"],
-        "exploration_steps": n_explore,
-        "max_balance_error_m": s["max_balance_error_m"],
-        "final_yaw_error_rad": s["final_yaw_error_rad"],
-        "wall_s": wall,
-        "plan_ms_median": statistics.median(timed) if timed else None,
-        "truth_hazardous": bool(massdist.is_hazardous(truth, cfg.box)),
-        "lost_exploring": lost_exploring,
-        "adapt_s": adapt_s,
-        "adaptations": adaptations,
-    }
-    if estimator != "oracle" and belief is not None:
-        from boxjax.estimator import com_error_cm
-
-        summary["iou"] = float(massdist.iou(belief.occupancy, truth.occupancy))
-        summary["mass_error_kg"] = float(belief.total_mass - truth.total_mass)
-        summary["com_error_cm"] = float(com_error_cm(belief, truth, cfg.box))
-        if est.get("hazard_prob") is not None:
-            summary["hazard_prob"] = float(est["hazard_prob"])
-    if not aborted and not s["done"]:
-        summary["failed_reason"] = task.REASONS[task.STEP_CAP]
     return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))

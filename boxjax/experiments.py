@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from boxjax import fileio, massdist
+from boxjax import batch, fileio, massdist
 from boxjax.config import Config
 from boxjax.controller import ControllerConfig, run_episode
 
@@ -172,12 +172,13 @@ def summarize(rows: list[dict]) -> dict:
 
 class Evaluation(NamedTuple):
     """What `evaluate` returns: `summary` (plain data; the CLI's JSON), one `rows` dict per box, the
-    boxes, and each episode's balance error over time (`balance`, (T_j + 1,) m, for the plots)."""
+    boxes, each episode's balance error over time (`balance`, (T_j + 1,) m, for the plots) and actions."""
 
     summary: dict
     rows: list[dict]
     boxes: EvalBoxes
     balance: list[np.ndarray]
+    actions: list[np.ndarray] | None = None  # (T_j, 4) per episode: what was sent (`replay` re-simulates)
 
 
 def settings(estimator: str, ctrl: ControllerConfig, seed: int, family: str) -> dict:
@@ -204,6 +205,8 @@ def evaluate(
     family: str = "gaussian",
     progress: bool = True,
     estimator_fn: Any = None,
+    batched: bool | None = None,
+    slots: int | None = None,
 ) -> Evaluation:
     """Run one closed-loop episode on each of n_safe random label-safe boxes and n_hazardous hazardous
     boxes (paper §4.3). Every episode ends with an outcome: success, aborted (refused after exploring),
@@ -212,6 +215,10 @@ def evaluate(
     Args:
       estimator: "oracle" (the true distribution) or "learned" (the shipped H, or `estimator_fn`).
       ctrl: the controller (planner, prior variant, options). family: the hazardous boxes' family.
+      batched: run the episodes together (`boxjax.batch`: `slots` boxes per planner call; default where
+        the controller allows it, `batch.supports`) or one at a time (`controller.run_episode`). The two
+        agree in distribution, not bit for bit (see boxjax/batch.py); each episode's actions are kept,
+        so `replay` re-simulates any of them exactly either way.
     """
     if n_safe < 0 or n_hazardous < 0 or n_safe + n_hazardous < 1:
         raise ValueError(
@@ -219,6 +226,12 @@ def evaluate(
         )
     if estimator not in ("oracle", "learned"):
         raise ValueError(f"unknown estimator {estimator!r}; choose 'oracle' or 'learned'")
+    why_not = batch.supports(ctrl)
+    if batched and why_not is not None:
+        raise ValueError(f"cannot batch these episodes: {why_not}")
+    if slots is not None and (slots < 1 or batched is False or why_not is not None):
+        raise ValueError("slots (boxes per planner call) needs batched episodes and must be >= 1")
+    batched = why_not is None if batched is None else batched
     est: Any = "oracle"
     if estimator == "learned":
         from boxjax.controller import learned_estimator
@@ -232,24 +245,39 @@ def evaluate(
         from tqdm import tqdm
 
         bar = tqdm(total=len(boxes), desc=f"evaluate ({estimator}, {ctrl.planner})", unit="box", leave=False)
-    for j in range(len(boxes)):
-        res = run_episode(
-            cfg, boxes.dist(j), jax.random.wrap_key_data(boxes.keys[j]), estimator=est, ctrl=ctrl
+    results: list[Any] = [None] * len(boxes)
+    ended = {"safe": 0, "turned": 0}
+
+    def done(j: int, res) -> None:
+        results[j] = res
+        if not boxes.hazardous[j]:
+            ended["safe"] += 1
+            ended["turned"] += bool(res.summary["success"])
+        if bar is not None:
+            bar.set_postfix_str(f"safe turned {ended['turned']}/{ended['safe']}")
+            bar.update(1)
+
+    dists = [boxes.dist(j) for j in range(len(boxes))]
+    keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in range(len(boxes))]
+    if batched:
+        batch.run_episodes(
+            cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots or batch.DEFAULT_SLOTS, progress=done
         )
+    else:
+        for j in range(len(boxes)):
+            done(j, run_episode(cfg, dists[j], keys[j], estimator=est, ctrl=ctrl))
+    for j, res in enumerate(results):
         rows.append(_row(j, boxes, res, cfg))
         balance.append(np.asarray(res.trace.balance_error, np.float32))
-        if bar is not None:
-            ok = sum(r["outcome"] == "success" for r in rows if not r["hazardous"])
-            bar.set_postfix_str(f"safe turned {ok}/{sum(not r['hazardous'] for r in rows)}")
-            bar.update(1)
     if bar is not None:
         bar.close()
     summary = {
         **summarize(rows),
         **settings(estimator, ctrl, seed, family),
+        "batched": bool(batched),
         "wall_s": time.perf_counter() - t0,
     }
-    return Evaluation(summary, rows, boxes, balance)
+    return Evaluation(summary, rows, boxes, balance, [np.asarray(r.trace.actions) for r in results])
 
 
 def write_evaluation(ev: Evaluation, out_dir, command: str | None = None) -> dict[str, str]:
@@ -267,6 +295,12 @@ def write_evaluation(ev: Evaluation, out_dir, command: str | None = None) -> dic
         "balance": pad,
         "balance_len": lengths,
     }
+    if ev.actions is not None:  # what each episode sent, NaN-padded: `replay` re-simulates it exactly
+        n_act = np.asarray([len(a) for a in ev.actions], np.int32)
+        acts = np.full((len(ev.actions), int(n_act.max(initial=1)), 4), np.nan, np.float64)
+        for j, a in enumerate(ev.actions):
+            acts[j, : len(a)] = a
+        arrays.update(actions=acts, actions_len=n_act)
     arrays["family"] = arrays["family"].astype("U16")
     fileio.write_npz_with_meta(npz_path, arrays, {"summary": ev.summary}, RESULTS_FORMAT, RESULTS_VERSION)
     doc = {"command": command, "summary": ev.summary, "rows": ev.rows}
@@ -290,6 +324,18 @@ def load_boxes(out_dir) -> tuple[EvalBoxes, dict]:
     return boxes, meta["summary"]
 
 
+def load_actions(out_dir) -> list[np.ndarray] | None:
+    """Each episode's actions (T_j, 4) of an evaluation written by `write_evaluation` (None for files
+    written before actions were kept)."""
+    path = os.path.join(out_dir, "boxes.npz") if os.path.isdir(out_dir) else out_dir
+    arrays, _ = fileio.read_npz_with_meta(
+        path, EvaluationFileError, "evaluation boxes", RESULTS_FORMAT, RESULTS_VERSION
+    )
+    if "actions" not in arrays:
+        return None
+    return [arrays["actions"][j, :n] for j, n in enumerate(arrays["actions_len"])]
+
+
 def controller_from_settings(st: dict) -> ControllerConfig:
     """The ControllerConfig an evaluation ran with (its `settings(...)["controller"]`)."""
     c = dict(st["controller"])
@@ -305,8 +351,10 @@ def controller_from_settings(st: dict) -> ControllerConfig:
 
 
 def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
-    """Re-run box `index` of a written evaluation with its own episode key, estimator and controller: the
-    same episode. Returns (controller.EpisodeResult, the evaluation's row for that box)."""
+    """Box `index` of a written evaluation again: its recorded actions re-simulated with its own episode
+    key (the same states bit for bit, however the evaluation ran), the estimator and the decision
+    re-run on the exploration. Files without recorded actions: the episode re-run closed loop with
+    `run_episode`. Returns (controller.EpisodeResult, the evaluation's summary)."""
     boxes, summary = load_boxes(out_dir)
     if not 0 <= index < len(boxes):
         raise ValueError(
@@ -318,7 +366,8 @@ def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
 
         est = estimator_fn or learned_estimator(cfg)
     ctrl = controller_from_settings(summary)
-    res = run_episode(
-        cfg, boxes.dist(index), jax.random.wrap_key_data(boxes.keys[index]), estimator=est, ctrl=ctrl
-    )
-    return res, summary
+    truth, key = boxes.dist(index), jax.random.wrap_key_data(boxes.keys[index])
+    actions = load_actions(out_dir)
+    if actions is None:
+        return run_episode(cfg, truth, key, estimator=est, ctrl=ctrl), summary
+    return batch.replay_episode(cfg, truth, key, actions[index], estimator=est, ctrl=ctrl), summary

@@ -1,0 +1,308 @@
+"""Many closed-loop episodes at once, the JAX way: one jitted, vmapped planner call per control step.
+
+`run_episodes(cfg, truths, keys)` runs the episode `controller.run_episode` runs for every box (explore,
+estimate, refuse or turn), with the same pieces (`controller.decide`, `planning_model`, the planner by
+name) and the same per-box key chain, but
+
+* the worlds are stepped together (`sim.native.NativeBatch`: each box's own MuJoCo data, one vmapped
+  command and observation for all);
+* the exploration, a fixed open-loop sequence, runs for all boxes at once;
+* the MPC runs `slots` boxes per planner call (`jax.vmap` of the planner's `optimize` over boxes, models
+  and plan states, jitted once per shape). A box that ends frees its slot for the next box waiting
+  (continuous batching: the batch keeps one shape, so it compiles once, and no box waits for the slowest
+  of its group). A box waiting for a slot is paused, not simulated: its world does not move meanwhile.
+
+What it is not: bit-identical to the one-box path. XLA vectorises a vmapped computation differently from
+one box's (and differently for other batch widths), so a planner's action differs from the one-box
+action at float32 round-off (measured: 1e-6 m/s after one call); slip makes the closed loop chaotic, so a
+single episode may then end differently, while the statistics over boxes agree (benchmarks/episodes.py
+runs both on the same boxes). The physics is the same bit for bit for the same actions (a test), which is
+why every episode's actions are kept (`EpisodeResult.trace.actions`): `replay_episode` re-simulates one
+exactly.
+
+Supported: the jnp planners ("sampling", "paper") with the physics prior and the oracle or a learned
+estimator. The privileged simulator planner, a model in the slot (the black box W), online adaptation and
+the drift observer run through `controller.run_episode`, one box at a time (`supports` says which).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from functools import lru_cache
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import controller, explore, massdist, planning, prior
+from boxjax.config import Config
+from boxjax.controller import ControllerConfig, EpisodeResult
+from boxjax.sim.episode import EpisodeTrace
+from boxjax.sim.native import NativeBatch
+
+DEFAULT_SLOTS = 8  # boxes per planner call: wider calls cost little less per box, and idle more at the end
+
+
+def supports(ctrl: ControllerConfig) -> str | None:
+    """None when `run_episodes` can run `ctrl`, else why not (then use `controller.run_episode`)."""
+    if ctrl.planner not in ("sampling", "paper"):
+        return f"the {ctrl.planner!r} planner is not vmappable (it plans on the host)"
+    if ctrl.observer_gain > 0:
+        return "the drift observer (observer_gain > 0) runs one box at a time"
+    if ctrl.adapt_every > 0:
+        return "online adaptation (adapt_every > 0) runs one box at a time"
+    return None
+
+
+@lru_cache(maxsize=8)
+def batched_planner(cfg: Config, ctrl: ControllerConfig):
+    """(init, optimize) of the planner `ctrl` names, vmapped over boxes and jitted (cached per config)."""
+    mpc = controller.make_planner(cfg, ctrl)
+    return jax.jit(jax.vmap(mpc.init)), jax.jit(jax.vmap(mpc.optimize))
+
+
+def _as_key(key):
+    """A typed PRNG key from a typed key or raw uint32 key data (`jax.random.PRNGKey`)."""
+    key = jnp.asarray(key) if not isinstance(key, jax.Array) else key
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return key
+    return jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
+
+
+def _stack(trees):
+    return jax.tree.map(lambda *x: jnp.stack(x), *trees)
+
+
+def _set_slot(batch, k: int, tree):
+    return jax.tree.map(lambda b, x: b.at[k].set(x), batch, tree)
+
+
+class _Record:
+    """One box's episode as it happens (host lists; turned into an EpisodeTrace at the end)."""
+
+    def __init__(self, sim: NativeBatch, b: int):
+        self.s, self.belt_speed, self.balance = (
+            [sim.s[b].copy()],
+            [sim.belt_speed[b].copy()],
+            [float(sim.balance_error[b])],
+        )
+        self.actions: list[np.ndarray] = []
+        self.clipped: list[bool] = []
+        self.plan_ms: list[float] = []
+
+    def add(self, sim: NativeBatch, b: int, action) -> None:
+        self.actions.append(np.asarray(action, np.float64))
+        self.s.append(sim.s[b].copy())
+        self.belt_speed.append(sim.belt_speed[b].copy())
+        self.balance.append(float(sim.balance_error[b]))
+        self.clipped.append(bool(sim.clipped[b]))
+
+    def exploration(self) -> dict:
+        """The episode so far as the estimators take it: s (T+1, 5), belt_speed (T+1, 2), actions (T, 4)."""
+        return {
+            "s": np.stack(self.s),
+            "belt_speed": np.stack(self.belt_speed),
+            "actions": np.asarray(self.actions, np.float64).reshape(-1, 4),
+        }
+
+    def trace(self, cfg: Config, wall_s: float) -> EpisodeTrace:
+        n = len(self.s)
+        return EpisodeTrace(
+            time=np.arange(n) * cfg.gripper.control_dt,
+            s=np.stack(self.s),
+            belt_speed=np.stack(self.belt_speed),
+            actions=np.asarray(self.actions, np.float64).reshape(-1, 4),
+            balance_error=np.asarray(self.balance),
+            clipped=np.asarray(self.clipped, bool),
+            wall_s=wall_s,
+        )
+
+
+def _result(cfg, truth, sim: NativeBatch, b: int, rec: _Record, decided, n_explore, lost, wall, estimator):
+    """World b's EpisodeResult, its summary as `controller.run_episode` makes it."""
+    est, belief, why = decided
+    final = sim.state(b).summary()
+    summary = controller.episode_summary(
+        cfg, truth, final, est, belief, why, n_explore=int(n_explore), lost_exploring=bool(lost),
+        wall_s=wall, plan_ms=rec.plan_ms, estimator=estimator,
+    )  # fmt: skip
+    timed = rec.plan_ms[1:] if len(rec.plan_ms) > 1 else rec.plan_ms  # the first call compiles
+    return EpisodeResult(summary, rec.trace(cfg, wall), belief, truth, np.asarray(timed))
+
+
+def run_episodes(
+    cfg: Config,
+    truths,
+    keys,
+    *,
+    estimator: Any = "oracle",
+    ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008 (frozen dataclass: immutable)
+    force_map=None,
+    max_steps: int | None = None,
+    slots: int = DEFAULT_SLOTS,
+    progress: Any = None,
+) -> list[EpisodeResult]:
+    """`controller.run_episode(cfg, truths[j], keys[j], estimator=..., ctrl=...)` for every box j, batched
+    (see the module docstring). Returns one EpisodeResult per box, in order; `wall_s` of each is the
+    batch's wall time up to the box's end, `plan_ms` the batched planner calls it took part in.
+
+    Args:
+      truths: B mass distributions. keys: B episode keys (jax PRNG keys, typed or raw).
+      estimator: "oracle" or a callable as for `run_episode` (called once per box after the exploration).
+      slots: boxes per planner call (1 <= slots; at most B are used).
+      progress: optional callable(box index, EpisodeResult) called as each episode ends.
+    Raises:
+      ValueError: an unsupported controller (`supports`), no boxes, mismatched keys or slots < 1.
+      RuntimeError: a planner produced a non-finite action (naming the box).
+    """
+    why_not = supports(ctrl)
+    if why_not is not None:
+        raise ValueError(f"batched episodes cannot run this controller: {why_not}; use run_episode")
+    truths = list(truths)
+    B = len(truths)
+    if B < 1 or len(keys) != B:
+        raise ValueError(f"need at least one box and one key per box, got {B} boxes and {len(keys)} keys")
+    if slots < 1:
+        raise ValueError(f"slots must be >= 1, got {slots}")
+    max_steps = cfg.task.max_steps if max_steps is None else max_steps
+    t_start = time.perf_counter()
+    split = [jax.random.split(_as_key(k)) for k in keys]
+    key_reset = [k[0] for k in split]
+    key_plan = [k[1] for k in split]
+    sim = NativeBatch(cfg, truths, key_reset)
+    rec = [_Record(sim, b) for b in range(B)]
+    results: list[EpisodeResult | None] = [None] * B
+    decided: list[tuple] = [({}, None, None)] * B
+
+    def finish(b: int, n_explore: int, lost: bool) -> None:
+        wall = time.perf_counter() - t_start
+        results[b] = _result(cfg, truths[b], sim, b, rec[b], decided[b], n_explore, lost, wall, estimator)
+        if progress is not None:
+            progress(b, results[b])
+
+    # 1. exploration: the fixed sequence for every box at once; a box that ends stops there
+    n_explore = np.zeros(B, np.int32)
+    if ctrl.explore:
+        for a in explore.exploration_actions(cfg):
+            live = ~sim.done & (sim.t < max_steps)
+            if not live.any():
+                break
+            sim.step(np.tile(np.asarray(a, np.float64), (B, 1)), live)
+            for b in np.flatnonzero(live):
+                rec[b].add(sim, b, a)
+            n_explore += live
+    lost = sim.done.copy()
+
+    # 2.-3. belief and decision per box; 4. the models of the boxes to turn
+    queue: deque[int] = deque()
+    models: dict[int, Any] = {}
+    for b in range(B):
+        if lost[b]:
+            finish(b, int(n_explore[b]), True)
+            continue
+        decided[b] = controller.decide(cfg, truths[b], rec[b].exploration(), estimator)
+        est, belief, why = decided[b]
+        if why is not None or sim.t[b] >= max_steps:
+            finish(b, int(n_explore[b]), False)
+            continue
+        models[b] = controller.planning_model(cfg, ctrl, belief, force_map)
+        queue.append(b)
+
+    # 5. the MPC, `slots` boxes per planner call
+    if queue:
+        init_b, optimize_b = batched_planner(cfg, ctrl)
+        width = min(slots, len(queue))
+        windows = {b: controller.first_window(np.stack(rec[b].s)) for b in queue}
+
+        def observations(boxes_: list[int]) -> planning.Observation:
+            """The planner's observations of these boxes, stacked (one host -> device copy per field)."""
+            w = np.stack([prior.check_window(np.asarray(windows[b][-prior.MIN_WINDOW :])) for b in boxes_])
+            return planning.observation(w, sim.belt_speed[boxes_], sim.target_yaw[boxes_])
+
+        first = queue[0]
+        slot_box: list[int | None] = [None] * width
+        model_b = _stack([models[first]] * width)
+        plan_b = init_b(observations([first] * width))
+        keys_b = jnp.stack([key_plan[first]] * width)
+
+        def admit(k: int) -> None:
+            nonlocal model_b, plan_b, keys_b
+            b = queue.popleft()
+            slot_box[k] = b
+            model_b = _set_slot(model_b, k, models.pop(b))
+            plan_b = _set_slot(plan_b, k, jax.tree.map(lambda x: x[0], init_b(observations([b]))))
+            keys_b = keys_b.at[k].set(key_plan[b])
+
+        for k in range(width):
+            if queue:
+                admit(k)
+        while any(b is not None for b in slot_box):
+            live = [b for b in slot_box if b is not None]
+            obs_b = observations([b if b is not None else live[0] for b in slot_box])
+            pair = jax.vmap(jax.random.split)(keys_b)
+            keys_b, key_step = pair[:, 0], pair[:, 1]
+            t0 = time.perf_counter()
+            actions, plan_b, _ = optimize_b(key_step, model_b, obs_b, plan_b)
+            actions = np.asarray(actions, np.float64)
+            ms = 1e3 * (time.perf_counter() - t0)
+            full = np.zeros((B, 4))
+            active = np.zeros(B, bool)
+            for k, b in enumerate(slot_box):
+                if b is None:
+                    continue
+                if not np.all(np.isfinite(actions[k])):  # never send a NaN action to the belts
+                    raise RuntimeError(
+                        f"planner produced a non-finite action {actions[k].tolist()} for box {b}; stopping"
+                    )
+                full[b], active[b] = actions[k], True
+                rec[b].plan_ms.append(ms)
+            sim.step(full, active)
+            for k, b in enumerate(slot_box):
+                if b is None:
+                    continue
+                rec[b].add(sim, b, full[b])
+                windows[b].append(sim.s[b].copy())
+                if sim.done[b] or sim.t[b] >= max_steps:
+                    finish(b, int(n_explore[b]), False)
+                    slot_box[k] = None
+                    if queue:
+                        admit(k)
+    return results  # type: ignore[return-value]
+
+
+def replay_episode(
+    cfg: Config,
+    truth: massdist.MassDistribution,
+    key,
+    actions,
+    *,
+    estimator: Any = "oracle",
+    ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008
+) -> EpisodeResult:
+    """An episode again from the actions (T, 4) it sent, with its episode key: the physics re-simulated
+    (the same states bit for bit: `NativeBatch` steps each world as `NativeEnv` does), the estimator and
+    the hazard decision re-run on the exploration, the summary as the episode's own.
+
+    Raises:
+      ValueError: the episode ends before its actions do (another box, key or config).
+    """
+    t0 = time.perf_counter()
+    key_reset, _ = jax.random.split(_as_key(key))
+    sim = NativeBatch(cfg, [truth], [key_reset])
+    rec = _Record(sim, 0)
+    actions = np.asarray(actions, np.float64).reshape(-1, 4)
+    n_explore = min(len(explore.exploration_actions(cfg)), len(actions)) if ctrl.explore else 0
+    decided: tuple = ({}, None, None)
+    lost = False
+    for t, a in enumerate(actions):
+        if sim.done[0]:
+            raise ValueError(f"the episode ended at step {t}, before its {len(actions)} recorded actions did")
+        sim.step(a[None], np.ones(1, bool))
+        rec.add(sim, 0, a)
+        if t + 1 == n_explore:
+            lost = bool(sim.done[0])
+            if not lost:
+                decided = controller.decide(cfg, truth, rec.exploration(), estimator)
+    return _result(cfg, truth, sim, 0, rec, decided, n_explore, lost, time.perf_counter() - t0, estimator)

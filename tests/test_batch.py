@@ -1,0 +1,107 @@
+"""Batched episodes (boxjax.batch, sim.native.NativeBatch): the same physics as the one-box env bit for
+bit, the same decisions and outcomes as `controller.run_episode`, exact replays, bad input named."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from boxjax import batch, controller, experiments, massdist
+from boxjax.config import DEFAULT as cfg
+from boxjax.sampling_planner import SamplingOptions
+from boxjax.sim.native import NativeBatch, NativeEnv
+
+
+def test_batched_worlds_step_as_the_one_box_env_bit_for_bit():
+    dists = [massdist.named(n, cfg.box) for n in ("A", "C", "uniform")]
+    keys = [jax.random.PRNGKey(j) for j in range(3)]
+    acts = np.random.default_rng(0).uniform(-1, 1, (3, 40, 4)) * np.array([0.1, 0.1, 0.01, 0.01])
+    sim = NativeBatch(cfg, dists, keys)
+    for t in range(40):
+        sim.step(acts[:, t], np.arange(3) != t % 3)  # one world paused each step
+    env = NativeEnv(cfg)
+    for b in range(3):
+        st = env.reset(keys[b], dists[b])
+        for t in range(40):
+            if t % 3 != b:
+                st = env.step(st, acts[b, t])
+        assert np.array_equal(np.asarray(st.s), sim.s[b])
+        assert int(st.t) == int(sim.t[b]) and int(st.reason) == int(sim.reason[b])
+        assert float(st.max_balance_error) == float(sim.max_balance_error[b])
+
+
+def test_batched_world_rejects_bad_actions_by_world():
+    sim = NativeBatch(cfg, [massdist.named("A", cfg.box)] * 2, [jax.random.PRNGKey(0)] * 2)
+    with pytest.raises(ValueError, match="shape"):
+        sim.step(np.zeros((3, 4)))
+    bad = np.zeros((2, 4))
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match=r"worlds \[1\]"):
+        sim.step(bad)
+    sim.step(bad, np.array([True, False]))  # an inactive world's row is ignored
+
+
+CTRL = controller.ControllerConfig(sampling=SamplingOptions(gradient_steps=0))
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    """The uniform box and hazardous D, batched, and the same boxes one at a time (a planner without
+    gradient steps: it compiles in a fraction of the default's time and turns these boxes as well)."""
+    dists = [massdist.named(n, cfg.box) for n in ("uniform", "D")]
+    keys = [jax.random.PRNGKey(j) for j in range(2)]
+    res = batch.run_episodes(cfg, dists, keys, ctrl=CTRL, slots=1)
+    single = [controller.run_episode(cfg, d, k, ctrl=CTRL) for d, k in zip(dists, keys, strict=True)]
+    return dists, keys, res, single
+
+
+def test_batched_episodes_decide_and_end_as_the_one_box_path(episodes):
+    dists, keys, res, single = episodes
+    for r, s in zip(res, single, strict=True):
+        assert set(r.summary) == set(s.summary)
+        for k in ("success", "aborted", "abort_reason", "exploration_steps", "lost_exploring"):
+            assert r.summary[k] == s.summary[k], k
+        # The exploration is open loop: bit for bit the same states.
+        n = r.summary["exploration_steps"]
+        assert n == 45 and np.array_equal(r.trace.s[: n + 1], s.trace.s[: n + 1])
+    u, d = res
+    assert u.summary["success"] and d.summary["aborted"] and d.summary["steps"] == 45
+    # Slip makes the closed loop chaotic: the MPC phase agrees to within some steps, not exactly.
+    assert abs(u.summary["steps"] - single[0].summary["steps"]) <= 0.2 * single[0].summary["steps"]
+    assert len(u.plan_ms) == u.summary["steps"] - 45 - 1  # one planner call per MPC step (first untimed)
+
+
+def test_a_box_waiting_for_a_slot_runs_when_one_frees():
+    dists = [massdist.named(n, cfg.box) for n in ("uniform", "A", "B")]
+    keys = [jax.random.PRNGKey(j) for j in range(3)]
+    res = batch.run_episodes(cfg, dists, keys, ctrl=CTRL, slots=1, max_steps=50)
+    for r in res:  # 45 exploration steps, then 5 MPC steps each, one box at a time
+        assert r.summary["steps"] == 50 and r.summary["failed_reason"] == "step_cap"
+        assert len(r.plan_ms) == 4
+    assert res[0].summary["wall_s"] < res[1].summary["wall_s"] < res[2].summary["wall_s"]
+
+
+def test_replay_re_simulates_a_batched_episode_exactly(episodes):
+    dists, keys, res, _ = episodes
+    for j in (0, 1):
+        rep = batch.replay_episode(cfg, dists[j], keys[j], res[j].trace.actions)
+        assert np.array_equal(rep.trace.s, res[j].trace.s)
+        for k in ("success", "aborted", "abort_reason", "failed_reason", "steps", "max_balance_error_m"):
+            assert rep.summary[k] == res[j].summary[k], k
+    with pytest.raises(ValueError, match="ended at step"):  # another box: the actions outlast it
+        batch.replay_episode(cfg, massdist.named("B", cfg.box), keys[0], np.tile([0.2, 0.2, 0, 0], (400, 1)))
+
+
+def test_unsupported_controllers_and_bad_arguments_are_named():
+    d, k = [massdist.named("A", cfg.box)], [jax.random.PRNGKey(0)]
+    with pytest.raises(ValueError, match="simulator"):
+        batch.run_episodes(cfg, d, k, ctrl=controller.ControllerConfig(planner="simulator"))
+    with pytest.raises(ValueError, match="adaptation"):
+        batch.run_episodes(cfg, d, k, ctrl=controller.ControllerConfig(adapt_every=20))
+    with pytest.raises(ValueError, match="one key per box"):
+        batch.run_episodes(cfg, d, k * 2)
+    with pytest.raises(ValueError, match="slots"):
+        batch.run_episodes(cfg, d, k, slots=0)
+    with pytest.raises(ValueError, match="slots"):
+        experiments.evaluate(cfg, 1, batched=False, slots=4, progress=False)
