@@ -480,6 +480,15 @@ def save(path, model: BlackBoxModel, seed: int, info: dict | None = None) -> str
     return write_npz_with_meta(path, arrays, meta, FORMAT, VERSION)
 
 
+def config_diff(config, expected) -> dict:
+    """{field: (value in the file, expected value)} of two configurations (dataclasses) that differ."""
+    return {
+        k: (v, getattr(expected, k))
+        for k, v in dataclasses.asdict(config).items()
+        if v != getattr(expected, k)
+    }
+
+
 def load(
     path,
     expected_config: BaselineConfig | None = None,
@@ -497,11 +506,7 @@ def load(
     except (KeyError, TypeError, ValueError) as e:
         raise BaselineCheckpointError(f"{path}: unreadable W configuration ({e})") from e
     if expected_config is not None and config != expected_config:
-        diff = {
-            k: (v, getattr(expected_config, k))
-            for k, v in dataclasses.asdict(config).items()
-            if v != getattr(expected_config, k)
-        }
+        diff = config_diff(config, expected_config)
         raise BaselineCheckpointError(
             f"{path}: W configuration differs from the expected one: {diff} (file, expected)"
         )

@@ -5,12 +5,17 @@ planner (`controller.make_planner`, default predictive sampling):
   * "prior": the physics-prior MPC with the learned H (45-step exploration, estimate, refuse if hazardous,
     turn), zero-shot;
   * "blackbox": the black box W (`baseline`) in the model slot, no exploration or estimate (it has none to
-    make), adapted online for `adapt_epochs` epochs on the episode's data every `adapt_every` steps.
+    make), adapted online for `adapt_epochs` epochs on the episode's data every `adapt_every` steps;
+  * "pets" (beyond the paper): the probabilistic ensemble with trajectory sampling (`pets`), trained on
+    W's data, in the same slot of the same planner (its particles' costs averaged), adapted as W.
 Each row: method, box, seed, outcome, steps, wall time (adaptation included), adaptation time and count,
 worst balance error. `table` aggregates rows per (box, method) beside the paper's numbers.
 
-`generalisation_gap`: one-step errors of W (trained on A) and of the physics prior (true masses) on fresh
-episodes of A and of C (`baseline_train.collect`, another seed than W's training data).
+`generalisation_gap`: one-step errors of W (trained on A), of PETS (when given) and of the physics prior
+(true masses) on fresh episodes of A and of C (`baseline_train.collect`, another seed than W's data).
+
+`load_black_box(method, weights)` and `adapter_for(model, epochs)` give a method's model and its online
+adaptation (W's or PETS's), for this module and the CLI.
 """
 
 from __future__ import annotations
@@ -20,11 +25,12 @@ import time
 
 import jax
 
-from boxjax import baseline, baseline_train, massdist
-from boxjax.config import DEFAULT, Config
+from boxjax import baseline, baseline_train, massdist, pets
+from boxjax.config import DEFAULT, Config, GripperConfig
 from boxjax.controller import ControllerConfig, learned_estimator, run_episode
 
-METHODS = ("prior", "blackbox")
+METHODS = ("prior", "blackbox", "pets")
+BLACK_BOXES = ("blackbox", "pets")  # methods with a learned model in the slot (no exploration, adapted)
 PAPER_TABLE1 = {  # paper Table 1: success ratio, average steps (D: the prior aborts, W 0 %)
     ("A", "prior"): (1.0, 238.8),
     ("A", "blackbox"): (1.0, 367.4),
@@ -35,6 +41,29 @@ PAPER_TABLE1 = {  # paper Table 1: success ratio, average steps (D: the prior ab
     ("D", "prior"): ("aborts", None),
     ("D", "blackbox"): (0.0, None),
 }
+
+
+def load_black_box(method: str, weights: str | None = None, gripper: GripperConfig = DEFAULT.gripper):
+    """The model of a black-box method: "blackbox" (W, `baseline`) or "pets" (`pets`), the shipped
+    weights unless `weights` names a checkpoint (refused by name if it is not that method's)."""
+    if method == "blackbox":
+        return baseline.default_model(gripper) if weights is None else baseline.load(weights, gripper=gripper)
+    if method == "pets":
+        return pets.default_model(gripper) if weights is None else pets.load(weights, gripper=gripper)
+    raise ValueError(f"unknown black-box method {method!r}; choose one of {BLACK_BOXES}")
+
+
+def adapter_for(model, epochs: int = 1):
+    """The online adaptation of `model` (PETS's or W's; a DriftCorrected wrapper is looked through), or
+    None when epochs < 1."""
+    if epochs < 1:
+        return None
+    inner = getattr(model, "model", model)
+    return (
+        pets.make_adapter(epochs)
+        if pets.is_pets(model) or pets.is_pets(inner)
+        else baseline.make_adapter(epochs)
+    )
 
 
 def outcome(summary: dict) -> str:
@@ -53,18 +82,20 @@ def blackbox_episode(
     adapt_every: int = 20,
     adapt_epochs: int = 1,
     ctrl: ControllerConfig | None = None,
+    method: str = "blackbox",
 ) -> dict:
-    """One episode of W (with online adaptation) on the named box; a plain row."""
-    model = baseline.default_model(cfg.gripper) if model is None else model
+    """One episode of a black box (W, or PETS with method="pets"; online adaptation) on the named box; a
+    plain row named `method`."""
+    model = load_black_box(method, None, cfg.gripper) if model is None else model
     ctrl = ctrl or ControllerConfig()
-    adapter = baseline.make_adapter(adapt_epochs) if adapt_every > 0 and adapt_epochs > 0 else None
+    adapter = adapter_for(model, adapt_epochs) if adapt_every > 0 else None
     ctrl = ControllerConfig(
         **{**ctrl.__dict__, "explore": False, "adapt_every": adapt_every if adapter else 0}
     )
     res = run_episode(
         cfg, massdist.named(name, cfg.box), jax.random.PRNGKey(seed), ctrl=ctrl, model=model, adapter=adapter
     )
-    return _row("blackbox", name, seed, res.summary)
+    return _row(method, name, seed, res.summary)
 
 
 def prior_episode(
@@ -108,8 +139,14 @@ def compare(
     adapt_every: int = 20,
     adapt_epochs: int = 1,
     progress: bool = True,
+    pets_model=None,
 ) -> dict:
-    """Table 1: rows (one per box, method, seed) and `table` (aggregated); plain data."""
+    """Table 1: rows (one per box, method, seed) and `table` (aggregated); plain data. `model`: W for
+    "blackbox", `pets_model`: the ensemble for "pets" (default: the shipped ones)."""
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; choose from {METHODS}")
+    models = {"blackbox": model, "pets": pets_model}
     from tqdm.auto import tqdm
 
     rows = []
@@ -119,11 +156,13 @@ def compare(
         if m == "prior":
             rows.append(prior_episode(cfg, b, s))
         else:
-            rows.append(blackbox_episode(cfg, b, s, model, adapt_every, adapt_epochs))
+            if models[m] is None:
+                models[m] = load_black_box(m, None, cfg.gripper)
+            rows.append(blackbox_episode(cfg, b, s, models[m], adapt_every, adapt_epochs, method=m))
     return {
         "rows": rows,
         "table": table(rows),
-        "table2": table2(),
+        "table2": table2(pets_weights=pets.shipped_path() if "pets" in methods else None),
         "wall_s": time.perf_counter() - t0,
         "adapt_every": adapt_every,
         "adapt_epochs": adapt_epochs,
@@ -140,6 +179,7 @@ def random_safe(
     adapt_epochs: int = 1,
     jsonl: str | None = None,
     progress: bool = True,
+    pets_model=None,
 ) -> list[dict]:
     """Beyond the paper: both methods on the first `n` random label-safe boxes of `boxjax evaluate
     --seed SEED` (`experiments.make_boxes`, the same boxes and episode keys), one episode each. Rows as
@@ -151,10 +191,12 @@ def random_safe(
     from boxjax import experiments
 
     boxes = experiments.make_boxes(cfg, n, 0, seed)
-    model = baseline.default_model(cfg.gripper) if model is None and "blackbox" in methods else model
+    models = {"blackbox": model, "pets": pets_model}
+    for m in BLACK_BOXES:
+        if m in methods and models[m] is None:
+            models[m] = load_black_box(m, None, cfg.gripper)
     est = learned_estimator(cfg) if "prior" in methods else None
-    adapter = baseline.make_adapter(adapt_epochs) if adapt_every > 0 and adapt_epochs > 0 else None
-    w_ctrl = ControllerConfig(explore=False, adapt_every=adapt_every if adapter else 0)
+    adapters = {m: adapter_for(x, adapt_epochs) if adapt_every > 0 else None for m, x in models.items()}
     rows = []
     for j in tqdm(range(len(boxes)), desc="random safe boxes", disable=not progress, leave=False):
         key = jax.numpy.asarray(boxes.keys[j])
@@ -162,7 +204,9 @@ def random_safe(
             if m == "prior":
                 res = run_episode(cfg, boxes.dist(j), key, estimator=est)
             else:
-                res = run_episode(cfg, boxes.dist(j), key, ctrl=w_ctrl, model=model, adapter=adapter)
+                ad = adapters[m]
+                ctrl = ControllerConfig(explore=False, adapt_every=adapt_every if ad else 0)
+                res = run_episode(cfg, boxes.dist(j), key, ctrl=ctrl, model=models[m], adapter=ad)
             rows.append(_row(m, f"safe{j}", seed, res.summary))
             if jsonl:
                 with open(jsonl, "a") as f:
@@ -170,9 +214,10 @@ def random_safe(
     return rows
 
 
-def table2(w_weights: str | None = None) -> list[dict]:
+def table2(w_weights: str | None = None, pets_weights: str | None = None) -> list[dict]:
     """Paper Table 2 from what the shipped (or given) models were really trained on: transitions, where
-    the data came from, zero-shot or not (read from the estimator's report and W's checkpoint)."""
+    the data came from, zero-shot or not (read from the estimator's report and W's checkpoint; a PETS
+    row from `pets_weights` when given)."""
     import json
     import os
 
@@ -198,7 +243,22 @@ def table2(w_weights: str | None = None) -> list[dict]:
             "online_adaptation": True,
             "paper": "~122k transitions, ~200 episodes of one box (random + successful policies), adapted",
         },
-    ]
+    ] + ([] if pets_weights is None else [_pets_table2_row(pets_weights)])
+
+
+def _pets_table2_row(path) -> dict:
+    _, meta = pets.load(path, with_meta=True)
+    info = meta.get("info", {})
+    kinds = ", ".join(f"{v} {k}" for k, v in info.get("episodes_by_kind", {}).items())
+    return {
+        "model": "PETS (probabilistic ensemble, beyond the paper)",
+        "transitions": info.get("transitions"),
+        "data_from": f"W's data, {info.get('episodes')} full episodes of box {info.get('distribution')}: "
+        + kinds,
+        "zero_shot": False,
+        "online_adaptation": True,
+        "paper": None,
+    }
 
 
 def table(rows: list[dict]) -> list[dict]:
@@ -241,9 +301,11 @@ def generalisation_gap(
     n_episodes: int = 20,
     seed: int = 1000,
     progress: bool = True,
+    pets_model=None,
 ) -> dict:
-    """One-step errors (median / p90 / mean, mm and degrees) of W, the prior (true masses) and constant
-    velocity on `n_episodes` fresh episodes of each box (baseline_train's episode mix, seed `seed`)."""
+    """One-step errors (median / p90 / mean, mm and degrees) of W, the prior (true masses), constant
+    velocity and, when `pets_model` is given, PETS (members' mean; with its calibration) on `n_episodes`
+    fresh episodes of each box (baseline_train's episode mix, seed `seed`)."""
     model = baseline.default_model(cfg.gripper) if model is None else model
     out = {}
     for name in boxes:
@@ -251,10 +313,11 @@ def generalisation_gap(
         t0 = time.perf_counter()
         eps = baseline_train.collect(cfg, truth, n_episodes, seed, progress)
         tr = baseline_train.transitions_of(eps)
-        out[name] = {
-            **baseline_train.compare_errors(model, tr, truth, cfg),
-            "wall_s": time.perf_counter() - t0,
-        }
+        out[name] = baseline_train.compare_errors(model, tr, truth, cfg)
+        if pets_model is not None:
+            out[name]["pets"] = baseline.summarise_errors(baseline.one_step_errors(pets_model, tr))
+            out[name]["pets_calibration"] = pets.calibration(pets_model, tr)
+        out[name]["wall_s"] = time.perf_counter() - t0
     return out
 
 

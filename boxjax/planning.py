@@ -22,6 +22,36 @@ The model slot. A model is a pytree with
 `rollout_sequence` feeds each predicted state back as the newest state of the window (so velocities come
 from the same finite differences as for observed states). A model that knows nothing about the centre of
 mass (a black box) returns a large constant margin (`NO_MARGIN`), so margin-based barriers are inert.
+
+Particle models (several predicted trajectories per action sequence). A model may also expose
+
+    model.n_particles -> int (static: a pytree meta field or derived from array shapes)
+    model.rollout_particles(key, window (W, 5), belt_speed (2,), actions (H, 4)) -> (P, H, 5)
+    model.particle_margins(states (P, H, 5)) -> (P, H) m, each particle's stability margin
+
+and the sampling planner then scores a candidate sequence by the cost of every particle, aggregated by
+`aggregate` (`SamplingOptions.particle_risk`: "mean" by default, as mbrl-lib's
+`ModelEnv.evaluate_action_sequences`; "mean_std" = mean + k * std and "worst" = max, the risk strategies
+of hydrax's `risk.py`). A model without `n_particles` (the prior, W) takes the plain path, unchanged
+(bit-identical plans; a test). `n_particles(model)` is the switch; `rollout_particles(model, ...)`
+works for either kind (a plain model gives one particle).
+
+`Ensemble(members, particles_per_member)` is the one such model here: `members` is ONE pytree of E
+models of the same type whose array leaves are stacked on a leading axis (`stack`), vmapped, never
+looped over. Particle p = e * particles_per_member + j follows member e over the whole horizon
+(trajectory sampling TS-inf of Chua et al. 2018, mbrl-lib's "fixed_model" propagation; the assignment is
+balanced, every candidate sees every member equally often, instead of mbrl-lib's random permutation).
+A member that predicts a distribution implements `rollout_sample(key, window, belt_speed, actions) ->
+(H, 5)` (a sampled trajectory, e.g. `pets.GaussianMember`), and each particle gets its own key; a
+deterministic member (a physics prior of H's ensemble) is rolled out by `rollout_sequence` and then one
+particle per member is all there is. The plain slot of an Ensemble (`rollout_sequence`,
+`stability_margin`) is the members' mean (mbrl-lib's "expectation"), so planners without particles, the
+one-step error tables and the adapters still take it.
+
+Keys. Particles that need noise get it from the key the planner is given for the control step
+(`sampling_planner.plan` folds in `PARTICLE_STREAM`): the same particle noise for every candidate of
+that step (common random numbers, as hydrax shares its domain randomisations across rollouts), fresh
+noise at the next step. No key lives in a model or in global state.
 """
 
 from __future__ import annotations
@@ -35,6 +65,8 @@ import jax
 import jax.numpy as jnp
 
 NO_MARGIN = 1.0  # m, the stability margin a model reports when it cannot know it (larger than the box)
+RISKS = ("mean", "mean_std", "worst")  # how particle costs of one candidate are aggregated (`aggregate`)
+PARTICLE_STREAM = 0x5045  # folded into a planning step's key for the particles' noise ("PE")
 
 
 class Observation(NamedTuple):
@@ -58,6 +90,16 @@ class Model(Protocol):
     def rollout_sequence(self, window, belt_speed, actions) -> jax.Array: ...
 
     def stability_margin(self, s) -> jax.Array: ...
+
+
+class ParticleModel(Model, Protocol):
+    """A model of the slot with several particles per action sequence (see the module docstring)."""
+
+    n_particles: int
+
+    def rollout_particles(self, key, window, belt_speed, actions) -> jax.Array: ...
+
+    def particle_margins(self, states) -> jax.Array: ...
 
 
 class Planner(NamedTuple):
@@ -103,6 +145,19 @@ class DriftCorrected:
     def stability_margin(self, s) -> jax.Array:
         return self.model.stability_margin(s)
 
+    # A particle model stays one under the correction (every particle moved by the same drift).
+    @property
+    def n_particles(self):
+        return n_particles(self.model)
+
+    def rollout_particles(self, key, window, belt_speed, actions) -> jax.Array:
+        states = rollout_particles(self.model, key, window, belt_speed, actions)
+        k = jnp.arange(1, states.shape[1] + 1, dtype=states.dtype)[None, :, None]
+        return states.at[..., 2:].add(k * self.drift)
+
+    def particle_margins(self, states) -> jax.Array:
+        return particle_margins(self.model, states)
+
 
 def update_drift(drift, predicted, observed, gain: float):
     """Integrating observer: drift + gain * (observed - predicted) in (x, y, yaw), where `predicted` is
@@ -114,3 +169,119 @@ def update_drift(drift, predicted, observed, gain: float):
 def predict_first(model, window, belt_speed, action) -> jax.Array:
     """(5,) the model's prediction one step ahead for `action` (4,)."""
     return model.rollout_sequence(window, belt_speed, jnp.asarray(action, jnp.float32)[None])[0]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Particles and ensembles (module docstring).
+
+
+def n_particles(model) -> int | None:
+    """The number of particles a model predicts per action sequence, or None for a single-trajectory
+    model (the plain path of the planners). Static (a Python int), so it can choose code paths."""
+    n = getattr(model, "n_particles", None)
+    return None if n is None else int(n)
+
+
+def rollout_particles(model, key, window, belt_speed, actions) -> jax.Array:
+    """(P, H, 5) the particles' predicted states; a single-trajectory model gives (1, H, 5)."""
+    if n_particles(model) is None:
+        return model.rollout_sequence(window, belt_speed, actions)[None]
+    return model.rollout_particles(key, window, belt_speed, actions)
+
+
+def particle_margins(model, states) -> jax.Array:
+    """(P, H) m: each particle's stability margin along its states (P, H, 5)."""
+    if n_particles(model) is None:
+        return jax.vmap(jax.vmap(model.stability_margin))(states)
+    return model.particle_margins(states)
+
+
+def aggregate(costs, risk: str = "mean", k: float = 1.0) -> jax.Array:
+    """Aggregate particle costs (..., P) over the last axis: "mean", "mean_std" (mean + k * std) or
+    "worst" (max). Non-finite particle costs make the result non-finite (a planner then drops it)."""
+    if risk == "mean":
+        return jnp.mean(costs, axis=-1)
+    if risk == "mean_std":
+        return jnp.mean(costs, axis=-1) + k * jnp.std(costs, axis=-1)
+    if risk == "worst":
+        return jnp.max(costs, axis=-1)
+    raise ValueError(f"unknown particle risk {risk!r}; choose one of {RISKS}")
+
+
+def stack(models) -> Any:
+    """One pytree of `models` (a sequence of models of one type and static configuration) with every
+    array leaf stacked on a new leading axis: the `members` of an Ensemble."""
+    models = list(models)
+    if not models:
+        raise ValueError("stack needs at least one model")
+    return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *models)
+
+
+def member(members, i: int) -> Any:
+    """Member i of stacked `members` (the inverse of `stack`)."""
+    return jax.tree.map(lambda x: x[i], members)
+
+
+def _leading(members) -> int:
+    leaves = jax.tree.leaves(members)
+    if not leaves:
+        raise ValueError("an Ensemble needs members with array leaves")
+    return int(leaves[0].shape[0])
+
+
+@functools.partial(
+    jax.tree_util.register_dataclass, data_fields=["members"], meta_fields=["particles_per_member"]
+)
+@dataclasses.dataclass(frozen=True)
+class Ensemble:
+    """E models of one type stacked on a leading axis (`stack`), a particle model of the slot.
+
+    members: a model pytree whose array leaves have a leading axis E (each member a `planning.Model`;
+      members with `rollout_sample` are stochastic). particles_per_member: static, particles that follow
+      each member (TS-inf); 1 for deterministic members (more would be copies).
+    """
+
+    members: Any
+    particles_per_member: int = 1
+
+    def __post_init__(self):
+        if int(self.particles_per_member) < 1:
+            raise ValueError(f"particles_per_member must be >= 1, got {self.particles_per_member}")
+
+    @property
+    def n_members(self) -> int:
+        return _leading(self.members)
+
+    @property
+    def n_particles(self) -> int:
+        return self.n_members * int(self.particles_per_member)
+
+    def rollout_particles(self, key, window, belt_speed, actions) -> jax.Array:
+        """(E * particles_per_member, H, 5): particle e * k + j follows member e, with its own key."""
+        e, k = self.n_members, int(self.particles_per_member)
+        keys = jax.random.split(key, e * k).reshape(e, k, *jnp.shape(key))
+
+        def one(m, key):
+            if hasattr(m, "rollout_sample"):
+                return m.rollout_sample(key, window, belt_speed, actions)
+            return m.rollout_sequence(window, belt_speed, actions)
+
+        states = jax.vmap(jax.vmap(one, in_axes=(None, 0)))(self.members, keys)  # (E, k, H, 5)
+        return states.reshape(e * k, *states.shape[2:])
+
+    def particle_margins(self, states) -> jax.Array:
+        """(P, H) m: each particle's margin under its own member."""
+        e, k = self.n_members, int(self.particles_per_member)
+        st = states.reshape(e, k, *states.shape[1:])
+        margins = jax.vmap(lambda m, s: jax.vmap(jax.vmap(m.stability_margin))(s))(self.members, st)
+        return margins.reshape(e * k, -1)
+
+    # The plain slot: the members' mean (mbrl-lib's "expectation" propagation).
+    def rollout_sequence(self, window, belt_speed, actions) -> jax.Array:
+        """(H, 5) the mean over members of each member's own (noise-free) rollout."""
+        states = jax.vmap(lambda m: m.rollout_sequence(window, belt_speed, actions))(self.members)
+        return jnp.mean(states, axis=0)
+
+    def stability_margin(self, s) -> jax.Array:
+        """() m, the members' mean margin at `s`."""
+        return jnp.mean(jax.vmap(lambda m: m.stability_margin(s))(self.members))

@@ -43,6 +43,14 @@ gradient through the differentiable prior (`gradient_steps`, optax), and a deadb
 (`position_deadband`). `make(cfg, options)` puts the planner behind the one planner interface
 (`planning.Planner`).
 
+Particle models (`planning` module docstring: a PETS ensemble, an ensemble of priors): every candidate
+sequence is rolled out as P particles and its cost is the particles' costs aggregated by
+`particle_risk` (mean by default; mean + particle_risk_k * std, or the worst particle), the same for the
+sampled candidates, the gradient refinement and the scoring of what is sent. The particles' noise comes
+from this step's key (`planning.PARTICLE_STREAM` folded in): common to all candidates of the step. A
+single-trajectory model (the prior, W) takes the plain path, which is what it was before particles
+existed (bit-identical plans; a test).
+
 Keys are explicit; `make_sampling_planner(cfg, **options)` returns a jitted
 `plan(key, model, window, belt_speed, target_yaw, nominal) -> (action (4,), SamplingInfo)`.
 """
@@ -85,6 +93,9 @@ class SamplingOptions:
     support_margin: float = 0.06  # m, each belt keeps at least this much of its width under the box
     tip_margin: float = 0.03  # m, the centre of mass stays this far inside the support polygon
     w_effort: float = 0.01
+    # Carriage rate: w_position_rate * ((dp_k - dp_{k-1}) / max_position_step)^2 over the sequence, dp_{-1}
+    # the carriages' last observed step (window). 0: off. See `position_rate_cost`.
+    w_position_rate: float = 0.0
     # Perturbations drawn at this many knots spread evenly over the horizon and interpolated linearly in
     # between (MuJoCo MPC's spline parameterisation); None: an independent draw at every step.
     n_knots: int | None = None
@@ -107,12 +118,18 @@ class SamplingOptions:
     # w_yaw * (sqrt(e^2 + d^2) - d) with d the task's yaw tolerance: a quadratic cost's pull vanishes
     # near the target (at 5 degrees its slope is 1/5 of the L1's), where the other terms then decide.
     pose_cost: str = "l1"
+    # Particle models only (planning.n_particles(model) is not None): how a candidate's particle costs
+    # are aggregated (planning.RISKS: "mean", "mean_std" = mean + particle_risk_k * std, "worst").
+    particle_risk: str = "mean"
+    particle_risk_k: float = 1.0
 
     def __post_init__(self):
         if self.n_samples < 2 or self.horizon < 1:
             raise ValueError(f"need n_samples >= 2 and horizon >= 1, got {self.n_samples}, {self.horizon}")
         if self.pose_cost not in POSE_COSTS:
             raise ValueError(f"unknown pose_cost {self.pose_cost!r}; choose one of {POSE_COSTS}")
+        if self.particle_risk not in planning.RISKS:
+            raise ValueError(f"unknown particle_risk {self.particle_risk!r}; choose one of {planning.RISKS}")
         if self.update not in UPDATES:
             raise ValueError(f"unknown update {self.update!r}; choose one of {UPDATES}")
         if self.iterations < 1 or self.gradient_steps < 0:
@@ -133,7 +150,8 @@ class SamplingInfo(NamedTuple):
     """What one planning step considered. N = n_samples, H = horizon.
 
     nominal: (H, 4) the chosen sequence (its first row is the action sent), shifted by `shift_nominal`
-      for the next step. states: (H, 5) its predicted states. cost: (N,) rollout costs (row 0 is the old
+      for the next step. states: (H, 5) its predicted states (a particle model: the particles' mean).
+      cost: (N,) rollout costs (particle models: aggregated over particles; row 0 is the old
       nominal). best: () index of the chosen rollout. balance_error: () m, worst predicted over the
       chosen rollout. yaw_error: () rad at its last state.
     """
@@ -204,6 +222,11 @@ def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
 def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
     """() cost of one predicted rollout (see module docstring); `model` (the model slot,
     `planning.Model`) gives the stability margin for the tipping barrier."""
+    return cost_given_margins(states, jax.vmap(model.stability_margin)(states), actions, target_yaw, cfg, o)
+
+
+def cost_given_margins(states, margins, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
+    """() cost of one predicted rollout (H, 5) whose stability margins (H,) m are given."""
     lim = cfg.task.balance_limit
     yaw_err = states[:, geometry.YAW] - target_yaw
     bal = jax.vmap(geometry.balance_error)(states) / lim
@@ -211,7 +234,7 @@ def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOpt
     over_y = jax.vmap(lambda s: planner.y_excess(s, cfg, o.y_margin))(states)
     relu2 = lambda u: jnp.square(jnp.maximum(u, 0.0))  # noqa: E731
     support = jax.vmap(lambda s: support_deficit(s, cfg, o.support_margin))(states)
-    tip = o.tip_margin - jax.vmap(model.stability_margin)(states)
+    tip = o.tip_margin - margins
     barrier = relu2(bal - o.safe_fraction) + relu2(over_x / lim) + relu2(over_y / lim) + relu2(support / lim)
     barrier = barrier + relu2(tip / lim)
     effort = jnp.sum(jnp.square(actions[:, 2:] / cfg.gripper.max_position_step), axis=-1)
@@ -224,13 +247,55 @@ def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOpt
     return jnp.sum(per_step)
 
 
-def evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg: Config, o: SamplingOptions):
-    """(states (N, H, 5), cost (N,)) of the sequences (N, H, 4) under the model; non-finite costs -> inf."""
-    states = jax.vmap(lambda seq: model.rollout_sequence(window, belt_speed, seq))(seqs)
-    cost = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, None))(
-        model, states, seqs, target_yaw, cfg, o
-    )
+def position_rate_cost(seq, window, cfg: Config, o: SamplingOptions) -> jax.Array:
+    """() w_position_rate * sum_k ((dp_k - dp_{k-1}) / max_position_step)^2 for a sequence (H, 4), with
+    dp_{-1} = P_t - P_{t-1} the carriages' last step as observed (window (W, 5)).
+
+    Why: predictive sampling's best-of-N keeps each sample's gaussian noise, and a cost on states cannot
+    tell a carriage alternating +-10 mm from one standing still (their net moves are alike), so the
+    carriages chatter at the step limit. Each carriage step is an impulsive event that the prior predicts
+    worst (README: its one-step error is 3x larger for position actions), and a real servo wears under
+    it. A penalty on the rate, not the size, leaves a sustained move free."""
+    if o.w_position_rate <= 0:
+        return jnp.zeros((), seq.dtype)
+    prev = window[-1, geometry.P1 : geometry.P2 + 1] - window[-2, geometry.P1 : geometry.P2 + 1]
+    dp = jnp.concatenate([prev[None], seq[:, 2:]], axis=0)
+    rate = jnp.diff(dp, axis=0) / cfg.gripper.max_position_step
+    return o.w_position_rate * jnp.sum(jnp.square(rate))
+
+
+def evaluate_sequences(
+    model, window, belt_speed, target_yaw, seqs, cfg: Config, o: SamplingOptions, key=None
+):
+    """(states (N, H, 5), cost (N,)) of the sequences (N, H, 4) under the model; non-finite costs -> inf.
+    A particle model (`planning.n_particles`) needs `key` (its particles' noise, common to all N
+    sequences); its states are the particles' mean and its cost the particles' aggregate
+    (`o.particle_risk`)."""
+    if planning.n_particles(model) is None:
+        states = jax.vmap(lambda seq: model.rollout_sequence(window, belt_speed, seq))(seqs)
+        cost = jax.vmap(rollout_cost, in_axes=(None, 0, 0, None, None, None))(
+            model, states, seqs, target_yaw, cfg, o
+        )
+    else:
+        if key is None:
+            raise ValueError("a particle model needs a key (its particles' noise) to evaluate sequences")
+        states, cost = jax.vmap(
+            lambda seq: particle_cost(model, key, window, belt_speed, target_yaw, seq, cfg, o)
+        )(seqs)
+    if o.w_position_rate > 0:
+        cost = cost + jax.vmap(lambda seq: position_rate_cost(seq, window, cfg, o))(seqs)
     return states, jnp.where(jnp.isfinite(cost), cost, jnp.inf)
+
+
+def particle_cost(model, key, window, belt_speed, target_yaw, seq, cfg: Config, o: SamplingOptions):
+    """(mean states (H, 5), aggregated cost ()) of ONE sequence (H, 4) under a particle model."""
+    parts = planning.rollout_particles(model, key, window, belt_speed, seq)  # (P, H, 5)
+    margins = planning.particle_margins(model, parts)  # (P, H)
+    costs = jax.vmap(cost_given_margins, in_axes=(0, 0, None, None, None, None))(
+        parts, margins, seq, target_yaw, cfg, o
+    )
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+    return jnp.mean(parts, axis=0), planning.aggregate(costs, o.particle_risk, o.particle_risk_k)
 
 
 def _update(seqs, cost, sigma, o: SamplingOptions):
@@ -251,13 +316,27 @@ def _update(seqs, cost, sigma, o: SamplingOptions):
     return jnp.mean(elite, axis=0), std
 
 
-def refine_gradient(model, window, belt_speed, target_yaw, seq, cfg: Config, o: SamplingOptions):
+def refine_gradient(model, window, belt_speed, target_yaw, seq, cfg: Config, o: SamplingOptions, key=None):
     """`o.gradient_steps` Adam steps (optax) on the rollout cost w.r.t. the sequence (H, 4), through the
     differentiable prior, projected onto the action limits after each step. Returns (sequence, cost) of
-    the best iterate (the start included), so refining never makes the plan worse under the model."""
-    def cost_of(x):
-        st = model.rollout_sequence(window, belt_speed, x)
-        return rollout_cost(model, st, x, target_yaw, cfg, o)
+    the best iterate (the start included), so refining never makes the plan worse under the model.
+    A particle model descends its aggregated particle cost with the particles' noise of `key` fixed."""
+    if planning.n_particles(model) is None:
+
+        def cost_of(x):
+            st = model.rollout_sequence(window, belt_speed, x)
+            return rollout_cost(model, st, x, target_yaw, cfg, o)
+
+    else:
+
+        def cost_of(x):
+            return particle_cost(model, key, window, belt_speed, target_yaw, x, cfg, o)[1]
+
+    if o.w_position_rate > 0:
+        state_cost = cost_of
+
+        def cost_of(x):
+            return state_cost(x) + position_rate_cost(x, window, cfg, o)
 
     scale = jnp.array([o.speed_sigma, o.speed_sigma, o.position_sigma, o.position_sigma], jnp.float32)
     opt = optax.adam(o.gradient_lr)  # in units of the perturbation std: the actions' scales differ by 10x
@@ -291,8 +370,10 @@ def plan(
     `o.iterations` rounds of: sample around the mean (the nominal first), score, update the mean
     (`o.update`: keep the best, MPPI's weighted mean, or CEM's elite mean and std). The plan is the
     lowest-cost sequence evaluated in any round (an updated mean is evaluated too), then optionally
-    refined by gradient (`o.gradient_steps`)."""
+    refined by gradient (`o.gradient_steps`). A particle model's noise comes from `key` (folded with
+    `planning.PARTICLE_STREAM`), the same for every candidate of this step."""
     nominal = jnp.asarray(nominal, jnp.float32)
+    key_p = None if planning.n_particles(model) is None else jax.random.fold_in(key, planning.PARTICLE_STREAM)
     if nominal.shape != (o.horizon, 4):
         raise ValueError(f"nominal must have shape ({o.horizon}, 4), got {nominal.shape}")
     sigma0 = jnp.array([o.speed_sigma, o.speed_sigma, o.position_sigma, o.position_sigma], jnp.float32)
@@ -304,7 +385,7 @@ def plan(
         seqs = clip_actions(
             jnp.concatenate([mean[None], mean[None] + noise]), cfg, o.speed_cap, o.position_deadband
         )
-        states, cost = evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg, o)
+        states, cost = evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg, o, key_p)
         costs.append(cost)
         i = jnp.argmin(cost)
         better = cost[i] < best_cost
@@ -314,15 +395,15 @@ def plan(
         mean, sigma = (seqs[i], sigma) if o.update == "best" else _update(seqs, cost, sigma, o)
     if o.update != "best":  # score the final mean too
         mean = clip_actions(mean, cfg, o.speed_cap, o.position_deadband)
-        st_m, c_m = evaluate_sequences(model, window, belt_speed, target_yaw, mean[None], cfg, o)
+        st_m, c_m = evaluate_sequences(model, window, belt_speed, target_yaw, mean[None], cfg, o, key_p)
         better = c_m[0] < best_cost
         best_seq, best_states = jnp.where(better, mean, best_seq), jnp.where(better, st_m[0], best_states)
         best_cost = jnp.where(better, c_m[0], best_cost)
     if o.gradient_steps > 0:
-        seq_g, _ = refine_gradient(model, window, belt_speed, target_yaw, best_seq, cfg, o)
+        seq_g, _ = refine_gradient(model, window, belt_speed, target_yaw, best_seq, cfg, o, key_p)
         # The deadband is not differentiable: apply it to the refined sequence and score what is sent.
         seq_g = clip_actions(seq_g, cfg, o.speed_cap, o.position_deadband)
-        st_g, c_g = evaluate_sequences(model, window, belt_speed, target_yaw, seq_g[None], cfg, o)
+        st_g, c_g = evaluate_sequences(model, window, belt_speed, target_yaw, seq_g[None], cfg, o, key_p)
         better = c_g[0] < best_cost
         best_seq, best_states = jnp.where(better, seq_g, best_seq), jnp.where(better, st_g[0], best_states)
         best_cost = jnp.where(better, c_g[0], best_cost)

@@ -66,3 +66,27 @@ def test_drift_corrected_model_adds_k_times_the_drift_and_the_observer_integrate
     assert np.asarray(model.stability_margin(S0)) == np.asarray(
         planning.DriftCorrected(model, drift).stability_margin(S0)
     )
+
+
+def test_ensemble_of_priors_particles_follow_their_members():
+    """An Ensemble of deterministic models (priors of two boxes, as H's ensemble will give): one particle
+    per member, each the member's own rollout and stability margin; the plain slot is their mean."""
+    models = [_model("A"), _model("C")]
+    ens = planning.Ensemble(planning.stack(models))
+    assert ens.n_particles == 2 and planning.n_particles(ens) == 2
+    acts = jnp.tile(jnp.array([[0.05, -0.05, 0.0, 0.002]]), (3, 1))
+
+    @jax.jit
+    def run(m):
+        parts = planning.rollout_particles(m, jax.random.PRNGKey(0), OBS.window, OBS.belt_speed, acts)
+        return parts, planning.particle_margins(m, parts)
+
+    parts, margins = run(ens)
+    for i, m in enumerate(models):
+        own, own_margin = run(m)  # a plain model: one particle, its own rollout
+        np.testing.assert_allclose(parts[i], own[0], atol=1e-6)
+        np.testing.assert_allclose(margins[i], own_margin[0], atol=1e-6)
+    assert not np.allclose(margins[0], margins[1])  # the centre of mass differs between A and C
+    np.testing.assert_allclose(
+        jax.jit(lambda m: m.rollout_sequence(OBS.window, OBS.belt_speed, acts))(ens), parts.mean(0), atol=1e-6
+    )
