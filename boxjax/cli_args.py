@@ -84,7 +84,7 @@ def option(
 ) -> None:
     """Declare `flag` on `parser` (a sub-command's parser); the declarations travel in its namespace."""
     dest = kwargs.pop("dest", flag.lstrip("-").replace("-", "_"))
-    if help is not None and default not in (None, False):
+    if help is not None and default is not None and default is not False:
         help = f"{help} (default {default})"
     parser.add_argument(flag, dest=dest, default=None, help=help, **kwargs)
     declared = parser.get_default("_options")
