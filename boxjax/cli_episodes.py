@@ -173,22 +173,22 @@ def _force_map(args, cfg, ctrl):
 
 
 def _model_slot(args, ctrl, cfg):
-    """(ctrl, model, adapter, summary fields) for --model prior|blackbox: the black box W fills the
-    planners' model slot (no exploration, no estimator), adapted online every --adapt-every steps."""
+    """(ctrl, model, adapter, summary fields) for --model prior|blackbox|pets: a learned black box (W, or
+    the PETS ensemble) fills the planners' model slot (no exploration, no estimator), adapted online
+    every --adapt-every steps."""
     if args.model == "prior":
         return ctrl, None, None, {"model": "prior"}
-    from boxjax import baseline, config_io
+    from boxjax import comparison, config_io
 
-    config_io.require_models(cfg, baseline=True, baseline_weights=args.model_weights, config_path=args.config)
-    model = (
-        baseline.default_model(cfg.gripper)
-        if args.model_weights is None
-        else baseline.load(args.model_weights, gripper=cfg.gripper)
-    )
+    if args.model == "blackbox":
+        config_io.require_models(
+            cfg, baseline=True, baseline_weights=args.model_weights, config_path=args.config
+        )
+    model = comparison.load_black_box(args.model, args.model_weights, cfg.gripper)
     every, epochs = args.adapt_every, args.adapt_epochs
-    adapter = baseline.make_adapter(epochs) if every > 0 and epochs > 0 else None
+    adapter = comparison.adapter_for(model, epochs) if every > 0 else None
     ctrl = dataclasses.replace(ctrl, explore=False, adapt_every=every if adapter else 0)
-    return ctrl, model, adapter, {"model": "blackbox", "adapt_every": every, "adapt_epochs": epochs}
+    return ctrl, model, adapter, {"model": args.model, "adapt_every": every, "adapt_epochs": epochs}
 
 
 def cmd_rotate(args) -> dict:
@@ -504,12 +504,12 @@ def add_parsers(sub) -> None:
         r,
         "--model",
         default="prior",
-        choices=("prior", "blackbox"),
+        choices=("prior", "blackbox", "pets"),
         used_by=(no_replay,),
         help="the planners' model: the physics prior, or the black box W (baseline.py)",
     )
-    blackbox = (no_replay, when("model", "blackbox"))
-    option(r, "--model-weights", used_by=blackbox, help="W checkpoint (default: the shipped one)")
+    blackbox = (no_replay, when("model", "blackbox", "pets"))
+    option(r, "--model-weights", used_by=blackbox, help="W or PETS checkpoint (default: the shipped one)")
     option(
         r,
         "--adapt-every",

@@ -148,15 +148,7 @@ def cmd_compare(args) -> dict:
         baseline_weights=args.model_weights,
         config_path=args.config,
     )
-    model = None
-    if blackbox:
-        from boxjax import baseline
-
-        model = (
-            baseline.default_model(cfg.gripper)
-            if args.model_weights is None
-            else baseline.load(args.model_weights, gripper=cfg.gripper)
-        )
+    model = comparison.load_black_box("blackbox", args.model_weights, cfg.gripper) if blackbox else None
     res = comparison.compare(
         cfg,
         tuple(args.boxes),
@@ -251,19 +243,22 @@ def add_parsers(sub) -> None:
     m = sub.add_parser("compare", help="paper Table 1: physics prior vs black box W on boxes A-D")
     option(m, "--seeds", type=int, default=5, check=at_least(1), help="episodes per box and method")
     m.add_argument("--boxes", nargs="+", choices=NAMES, default=["A", "B", "C", "D"])
-    m.add_argument("--methods", nargs="+", choices=("prior", "blackbox"), default=["prior", "blackbox"])
+    m.add_argument(
+        "--methods", nargs="+", choices=("prior", "blackbox", "pets"), default=["prior", "blackbox"]
+    )
     uses_w = (lambda a: None if "blackbox" in a.methods else "is an option of --methods blackbox",)
+    adapts = (lambda a: None if {"blackbox", "pets"} & set(a.methods) else "is an option of the black boxes",)
     option(m, "--model-weights", used_by=uses_w, help="W checkpoint (default: the shipped one)")
     option(
         m,
         "--adapt-every",
         type=int,
         default=20,
-        used_by=uses_w,
+        used_by=adapts,
         check=at_least(0),
         help="steps between W's online adaptations (0: none)",
     )
-    option(m, "--adapt-epochs", type=int, default=1, used_by=uses_w, check=at_least(0), help="epochs each")
+    option(m, "--adapt-epochs", type=int, default=1, used_by=adapts, check=at_least(0), help="epochs each")
     m.add_argument("--out", help="directory for comparison.json")
     config_option(m)
     m.add_argument("--json", action="store_true", help="print the result as one JSON line")

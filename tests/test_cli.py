@@ -126,7 +126,12 @@ def test_estimator_eval_on_mjx(capsys):
         (["evaluate", "--hazard-family", "items"], "does nothing with --hazardous 0"),
         (["evaluate", "--box", "b.npz", "--hazardous", "3"], "--hazardous does nothing with --box"),
         (["evaluate", "--weights", "h.npz"], "--weights is an option of --estimator learned"),
-        (["compare", "--methods", "prior", "--adapt-every", "3"], "is an option of --methods blackbox"),
+        (
+            ["compare", "--methods", "prior", "--adapt-every", "3"],
+            "--adapt-every is an option of the black boxes",
+        ),
+        (["compare", "--methods", "pets", "--model-weights", "w.npz"], "is an option of --methods blackbox"),
+        (["rotate", "--model", "pets", "--variant", "paper"], "--variant is an option of --model prior"),
         (["train-estimator", "--out", "x", "--boxes", "5"], "--boxes must be >= 10"),
         (["calibrate", "--out", "x.npz", "--transitions", "4"], "--transitions must be >= 8"),
     ],
