@@ -71,22 +71,26 @@ def test_drift_corrected_model_adds_k_times_the_drift_and_the_observer_integrate
 def test_ensemble_of_priors_particles_follow_their_members():
     """An Ensemble of deterministic models (priors of two boxes, as H's ensemble will give): one particle
     per member, each the member's own rollout and stability margin; the plain slot is their mean."""
-    models = [_model("A"), _model("C")]
-    ens = planning.Ensemble(planning.stack(models))
+    ens = planning.Ensemble(planning.stack([_model("A"), _model("C")]))
     assert ens.n_particles == 2 and planning.n_particles(ens) == 2
-    acts = jnp.tile(jnp.array([[0.05, -0.05, 0.0, 0.002]]), (3, 1))
+    acts = jnp.tile(jnp.array([[0.05, -0.05, 0.0, 0.002]]), (2, 1))
 
-    @jax.jit
-    def run(m):
-        parts = planning.rollout_particles(m, jax.random.PRNGKey(0), OBS.window, OBS.belt_speed, acts)
-        return parts, planning.particle_margins(m, parts)
+    @jax.jit  # one compilation (the prior's rollout is slow to compile)
+    def run(ens):
+        parts = planning.rollout_particles(ens, jax.random.PRNGKey(0), OBS.window, OBS.belt_speed, acts)
+        own = planning.member(ens.members, 1)  # a plain model: its own rollout and margins
+        own_states = own.rollout_sequence(OBS.window, OBS.belt_speed, acts)
+        return (
+            parts,
+            planning.particle_margins(ens, parts),
+            ens.rollout_sequence(OBS.window, OBS.belt_speed, acts),
+            own_states,
+            planning.particle_margins(own, own_states[None])[0],
+        )
 
-    parts, margins = run(ens)
-    for i, m in enumerate(models):
-        own, own_margin = run(m)  # a plain model: one particle, its own rollout
-        np.testing.assert_allclose(parts[i], own[0], atol=1e-6)
-        np.testing.assert_allclose(margins[i], own_margin[0], atol=1e-6)
+    parts, margins, mean, own_states, own_margins = run(ens)
+    assert parts.shape == (2, 2, 5) and margins.shape == (2, 2)
+    np.testing.assert_allclose(parts[1], own_states, atol=1e-6)  # particle 1 follows member 1 (box C)
+    np.testing.assert_allclose(margins[1], own_margins, atol=1e-6)
     assert not np.allclose(margins[0], margins[1])  # the centre of mass differs between A and C
-    np.testing.assert_allclose(
-        jax.jit(lambda m: m.rollout_sequence(OBS.window, OBS.belt_speed, acts))(ens), parts.mean(0), atol=1e-6
-    )
+    np.testing.assert_allclose(mean, parts.mean(0), atol=1e-6)
