@@ -207,7 +207,7 @@ def run_episodes(
         if why is not None or sim.t[b] >= max_steps:
             finish(b, int(n_explore[b]), False)
             continue
-        models[b] = controller.planning_model(cfg, ctrl, belief, force_map)
+        models[b] = controller.planning_model(cfg, ctrl, belief, force_map, est)
         queue.append(b)
 
     # 5. the MPC, `slots` boxes per planner call

@@ -146,6 +146,7 @@ def _controller_config(args):
         variant=args.variant,
         planner=args.planner,
         sampling=sampling,
+        belief=getattr(args, "belief", None) or "mean",
     )
 
 
@@ -426,6 +427,8 @@ def cmd_evaluate(args) -> dict:
             family=args.hazard_family,
             progress=not args.quiet,
             estimator_fn=None if est == "oracle" else est,
+            batched=False if args.one_at_a_time else None,
+            slots=args.slots,
         )
     summary = {"command": "evaluate", **ev.summary}
     if args.config:
@@ -446,6 +449,20 @@ def cmd_evaluate(args) -> dict:
 
 # ----------------------------------------------------------------------------------------------------------
 # parsers
+
+
+def belief_option(p, *used_by) -> None:
+    """--belief: plan on H's estimate or over each of its ensemble members (ControllerConfig.belief)."""
+    from boxjax.controller import BELIEFS
+
+    option(
+        p,
+        "--belief",
+        default="mean",
+        choices=BELIEFS,
+        used_by=(*used_by, when("planner", "sampling", owner="the sampling planner")),
+        help="mean: plan on H's estimate; ensemble: one prior per member of H's ensemble, costs averaged",
+    )
 
 
 def add_parsers(sub) -> None:
@@ -500,6 +517,7 @@ def add_parsers(sub) -> None:
     option(r, "--backend", default="native", choices=BACKENDS, used_by=(no_replay,), help="simulator")
     option(r, "--seed", type=int, default=0, used_by=(no_replay,), help="the episode's PRNG seed")
     planner_options(r, no_replay, prior=(prior_only,))
+    belief_option(r, no_replay, prior_only, when("estimator", "learned", owner="the learned estimator"))
     option(
         r,
         "--model",
@@ -579,6 +597,23 @@ def add_parsers(sub) -> None:
         help="estimator checkpoint (default: shipped)",
     )
     planner_options(v, calibration=False)
+    belief_option(v, when("estimator", "learned", owner="the learned estimator"))
+    batchable = when("planner", "sampling", "paper", owner="the batched jnp planners")
+    option(
+        v,
+        "--one-at-a-time",
+        action="store_true",
+        used_by=(batchable, no_file),
+        help="run the episodes one by one (controller.run_episode) instead of batched (boxjax.batch)",
+    )
+    option(
+        v,
+        "--slots",
+        type=int,
+        used_by=(batchable, no_file, without("one_at_a_time", "the episodes run one by one")),
+        check=at_least(1),
+        help="boxes per batched planner call (default 8)",
+    )
     option(v, "--out", help="directory: evaluation.json, boxes.npz (for rotate --replay), config.toml")
     option(v, "--force", action="store_true", used_by=(needs("out"),), help="overwrite a non-empty --out")
     option(v, "--plot", help="balance error over time (paper Fig. 3c) and outcomes over the centre of mass")

@@ -24,6 +24,7 @@ from boxjax.sim import make_env
 from boxjax.sim.episode import EpisodeTrace
 
 PLANNERS = ("paper", "sampling", "simulator")  # simulator: privileged reference, oracle only
+BELIEFS = ("mean", "ensemble")  # the planner's model: on the estimate, or on each of H's members
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,12 +48,20 @@ class ControllerConfig:
     # Gain of the drift observer (planning.DriftCorrected; 0: off): each step the model's prediction of
     # the state just reached is compared with it and the per-step drift corrected by gain x the error.
     observer_gain: float = 0.0
+    # What the planner's model is built on: "mean" (default) the estimator's one belief; "ensemble" one
+    # physics prior per member of H's ensemble (`estimator.predict_members`) in a `planning.Ensemble`, the
+    # sampling planner scoring each candidate over the members (`SamplingOptions.particle_risk`).
+    belief: str = "mean"
 
     def __post_init__(self):
         if self.planner not in PLANNERS:
             raise ValueError(f"unknown planner {self.planner!r}; choose one of {PLANNERS}")
         if self.rule not in planner.RULES:
             raise ValueError(f"unknown selection rule {self.rule!r}; choose one of {planner.RULES}")
+        if self.belief not in BELIEFS:
+            raise ValueError(f"unknown belief {self.belief!r}; choose one of {BELIEFS}")
+        if self.belief == "ensemble" and self.planner != "sampling":
+            raise ValueError("belief='ensemble' plans over H's members with the sampling planner only")
         if self.variant not in prior.VARIANTS:
             raise ValueError(f"unknown prior variant {self.variant!r}; choose one of {prior.VARIANTS}")
 
@@ -185,15 +194,31 @@ def decide(cfg: Config, truth: massdist.MassDistribution, exploration: dict, est
     return est, belief, why
 
 
-def planning_model(cfg: Config, ctrl: ControllerConfig, belief: massdist.MassDistribution, force_map=None):
-    """The physics prior (`ctrl.variant`) on the belief: the model the planners plan with."""
+def planning_model(
+    cfg: Config, ctrl: ControllerConfig, belief: massdist.MassDistribution, force_map=None, est=None
+):
+    """The model the planners plan with: the physics prior (`ctrl.variant`) on the belief, or with
+    `ctrl.belief == "ensemble"` a `planning.Ensemble` of one prior per member of the estimate
+    (`est["members"]`, the learned H's ensemble)."""
     if ctrl.variant == "paper" and force_map is None:
         from boxjax.calibrate import default_force_map
 
         force_map = default_force_map(cfg)
-    return prior.make_prior(
-        massdist.voxel_masses(belief, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
-    )
+
+    def on(dist):
+        return prior.make_prior(
+            massdist.voxel_masses(dist, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
+        )
+
+    if ctrl.belief == "mean":
+        return on(belief)
+    members = (est or {}).get("members")
+    if not members:
+        raise ValueError(
+            "belief='ensemble' needs an estimator that gives ensemble members (the learned H); "
+            "the oracle's one true distribution has none"
+        )
+    return planning.Ensemble(planning.stack([on(massdist.validate(m, cfg.box)) for m in members]))
 
 
 def first_window(s) -> list:
@@ -322,7 +347,7 @@ def run_episode(
     if why is None and not lost_exploring:
         # 4. physics-prior MPC
         if model is None:
-            model = planning_model(cfg, ctrl, belief, force_map)
+            model = planning_model(cfg, ctrl, belief, force_map, est)
         mpc = make_planner(cfg, ctrl)
         window = first_window(exploration["s"])
 

@@ -741,6 +741,17 @@ def predict(model: EstimatorParams, traj: jax.Array, final: jax.Array) -> Predic
     return Prediction(prob.reshape(model.box.grid), jnp.maximum(mass, MIN_MASS), hazard)
 
 
+def predict_members(model: EstimatorParams, traj: jax.Array, final: jax.Array) -> Prediction:
+    """H's ensemble members one by one on ONE trajectory: a Prediction whose fields have a leading axis
+    of size cfg.members (`predict` is their mean). The members' spread is H's uncertainty about the box
+    (the controller can plan over it: `ControllerConfig.belief = "ensemble"`)."""
+    x = _standardise(features(traj, final), model.norm)
+    logits, mass_std, hazard_logit = jax.vmap(_forward, in_axes=(0, None, None))(model.net, x, model.cfg)
+    prob = jax.nn.sigmoid(logits).reshape(-1, *model.box.grid)
+    mass = jnp.maximum(mass_std.reshape(-1) * model.norm.mass_std + model.norm.mass_mean, MIN_MASS)
+    return Prediction(prob, mass, jax.nn.sigmoid(hazard_logit).reshape(-1))
+
+
 # Jitted `predict` over a batch: traj (B, T, 11), final (B, 5) -> Prediction with a leading axis B.
 predict_batch = jax.jit(jax.vmap(predict, in_axes=(None, 0, 0)))
 
@@ -840,20 +851,29 @@ def estimate(model: EstimatorParams, traj, final) -> dict:
       traj: (T, 11), final: (5,) as built by `boxjax.explore.trajectory` / `explore.run`.
     Returns:
       dict: "prob" (nx, ny, nz) numpy occupancy probabilities; "distribution" the MassDistribution
-      thresholded at model.occupancy_threshold with the predicted total mass; "total_mass" float kg;
+      thresholded at model.occupancy_threshold with the predicted total mass; "members" the same for
+      each ensemble member (`predict_members`); "total_mass" float kg;
       "hazard_prob" float, the hazard head's probability; "hazardous" bool (`predict_hazard`).
     Raises:
       ValueError for a trajectory of the wrong shape / length or with NaN / inf (`predict_checked`).
     """
     prob, mass, hazard = predict_checked(model, traj, final)
     dist = to_distribution(jnp.asarray(prob), jnp.asarray(mass), model.occupancy_threshold)
+    mem = _predict_members_jit(model, jnp.asarray(traj, jnp.float32), jnp.asarray(final, jnp.float32))
+    members = [
+        to_distribution(mem.prob[e], mem.mass[e], model.occupancy_threshold) for e in range(mem.mass.shape[0])
+    ]
     return {
         "prob": prob,
         "distribution": dist,
+        "members": [jax.tree.map(np.asarray, m) for m in members],
         "total_mass": float(mass),
         "hazard_prob": float(hazard),
         "hazardous": bool(predict_hazard(model, hazard)),
     }
+
+
+_predict_members_jit = jax.jit(predict_members)
 
 
 @functools.partial(jax.jit, static_argnums=0)

@@ -226,6 +226,8 @@ def evaluate(
         )
     if estimator not in ("oracle", "learned"):
         raise ValueError(f"unknown estimator {estimator!r}; choose 'oracle' or 'learned'")
+    if ctrl.belief == "ensemble" and estimator == "oracle":
+        raise ValueError("belief='ensemble' plans over the learned H's members; the oracle has none")
     why_not = batch.supports(ctrl)
     if batched and why_not is not None:
         raise ValueError(f"cannot batch these episodes: {why_not}")

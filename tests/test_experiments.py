@@ -158,6 +158,11 @@ def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path
         (["evaluate", "--boxes", "3", "--planner", "paper", "--gradient-steps", "5"], "sampling planner"),
         (["evaluate", "--boxes", "3", "--gradient-steps", "-1"], "--gradient-steps"),
         (["rotate", "--replay", "/nonexistent/dir", "--index", "0"], "no such"),
+        (["evaluate", "--boxes", "3", "--belief", "ensemble"], "learned estimator"),
+        (["evaluate", "--boxes", "3", "--slots", "4", "--one-at-a-time"], "one by one"),
+        (["evaluate", "--boxes", "3", "--slots", "0"], "--slots"),
+        (["evaluate", "--boxes", "3", "--planner", "simulator", "--one-at-a-time"], "batched"),
+        (["rotate", "--estimator", "learned", "--planner", "paper", "--belief", "ensemble"], "sampling"),
     ],
 )
 def test_bad_input_exits_2_naming_the_problem(argv, message, capsys):
