@@ -4,10 +4,13 @@
 Both paths are compiled first on other boxes (a short warm-up episode each), so the timed part is
 episodes only; the compile times are reported apart. Also reported: each path's success count (the
 paths agree in distribution, not bit for bit: see boxjax/batch.py), the batched planner's cost per box
-and control step, and what a batched control step is made of (planner call, physics, bookkeeping).
+and control step, and one planner call timed alone at several widths (boxes per call) beside the
+unbatched call: what batching can gain at most on this machine.
 
 Prints ONE JSON object (the last line).
-Run: python benchmarks/episodes.py [--boxes 32] [--slots 16] [--seed 0] [--max-steps 600] [--skip-single]
+Run: python benchmarks/episodes.py [--boxes 32] [--slots 8] [--devices 1] [--seed 0] [--max-steps 600]
+                                  [--skip-single]
+                                  [--widths 1 8 32]
 """
 
 from __future__ import annotations
@@ -31,16 +34,83 @@ def _episodes(cfg, boxes, idx):
     return [boxes.dist(j) for j in idx], [jax.random.wrap_key_data(boxes.keys[j]) for j in idx]
 
 
+def planner_widths(cfg, ctrl, boxes, widths, calls: int = 10) -> dict:
+    """Median ms of one planner call for `widths` boxes at once (vmapped) and for one box unbatched: the
+    planner's cost per box and step, which bounds what batching can gain."""
+    import jax.numpy as jnp
+
+    from boxjax import planning, prior
+
+    mpc = controller.make_planner(cfg, ctrl)
+    w_max = max(widths)
+    models = [controller.planning_model(cfg, ctrl, boxes.dist(j)) for j in range(w_max)]
+    s = jnp.array([-0.11, 0.12, 0.01, -0.005, 0.4], jnp.float32)
+    obs = planning.observation(
+        jnp.stack(
+            [
+                s - (prior.MIN_WINDOW - 1 - i) * jnp.array([0, 0, 1e-3, 5e-4, 0.02])
+                for i in range(prior.MIN_WINDOW)
+            ]
+        ),
+        jnp.array([0.12, -0.1]),
+        np.pi / 2,
+    )
+    out = {}
+    ps = mpc.init(obs)
+    key = jax.random.PRNGKey(0)
+    t0 = time.perf_counter()
+    jax.block_until_ready(mpc.optimize(key, models[0], obs, ps)[0])
+    compile_1 = time.perf_counter() - t0
+    ts = []
+    for i in range(calls):
+        t0 = time.perf_counter()
+        jax.block_until_ready(mpc.optimize(jax.random.fold_in(key, i), models[0], obs, ps)[0])
+        ts.append(time.perf_counter() - t0)
+    out["unbatched"] = {
+        "compile_s": compile_1,
+        "call_ms": 1e3 * float(np.median(ts)),
+        "ms_per_box": 1e3 * float(np.median(ts)),
+    }
+    vm = jax.jit(jax.vmap(mpc.optimize))
+    for w in widths:
+        stack = lambda trees: jax.tree.map(lambda *x: jnp.stack(x), *trees)  # noqa: E731
+        mb, ob = stack(models[:w]), stack([obs] * w)
+        pb, kb = stack([ps] * w), jax.random.split(key, w)
+        t0 = time.perf_counter()
+        jax.block_until_ready(vm(kb, mb, ob, pb)[0])
+        comp = time.perf_counter() - t0
+        ts = []
+        for i in range(calls):
+            t0 = time.perf_counter()
+            jax.block_until_ready(vm(jax.random.split(jax.random.fold_in(key, i), w), mb, ob, pb)[0])
+            ts.append(time.perf_counter() - t0)
+        med = 1e3 * float(np.median(ts))
+        out[f"width_{w}"] = {"compile_s": comp, "call_ms": med, "ms_per_box": med / w}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--boxes", type=int, default=32)
-    ap.add_argument("--slots", type=int, default=batch.DEFAULT_SLOTS)
+    ap.add_argument("--slots", type=int, default=None, help="boxes per planner call (default 8 per device)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-steps", type=int, default=None, help="control-step cap (default: the task's)")
     ap.add_argument("--skip-single", action="store_true", help="time the batched path only")
+    ap.add_argument(
+        "--devices", type=int, default=1, help="host devices the batched planner shards its boxes over"
+    )
+    ap.add_argument(
+        "--widths",
+        type=int,
+        nargs="*",
+        default=[1, 8, 32],
+        help="planner-call widths timed alone (boxes per vmapped call); none: skip",
+    )
     args = ap.parse_args()
-    if args.boxes < 1 or args.slots < 1:
-        ap.error("--boxes and --slots must be >= 1")
+    if args.boxes < 1 or (args.slots is not None and args.slots < 1) or args.devices < 1:
+        ap.error("--boxes, --slots and --devices must be >= 1")
+    n_dev = batch.use_host_devices(args.devices)  # before any JAX computation
+    args.slots = args.slots or batch.SLOTS_PER_DEVICE * n_dev
     cfg = DEFAULT
     ctrl = controller.ControllerConfig()
     n_warm = min(args.slots, 4)
@@ -51,6 +121,7 @@ def main() -> None:
         "benchmark": "closed-loop episodes, batched vs one at a time",
         "boxes": args.boxes,
         "slots": args.slots,
+        "devices": n_dev,
         "seed": args.seed,
         "planner": ctrl.planner,
         **machine(),
@@ -109,6 +180,8 @@ def main() -> None:
             experiments.outcome(a.summary) == experiments.outcome(b.summary)
             for a, b in zip(res, single, strict=True)
         )
+    if args.widths:
+        out["planner_call"] = planner_widths(cfg, ctrl, boxes, args.widths)
     out["load_avg_1m"] = os.getloadavg()[0]
     emit(out)
 

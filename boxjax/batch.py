@@ -27,6 +27,7 @@ the drift observer run through `controller.run_episode`, one box at a time (`sup
 
 from __future__ import annotations
 
+import os
 import time
 from collections import deque
 from functools import lru_cache
@@ -35,6 +36,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from boxjax import controller, explore, massdist, planning, prior
 from boxjax.config import Config
@@ -42,7 +44,9 @@ from boxjax.controller import ControllerConfig, EpisodeResult
 from boxjax.sim.episode import EpisodeTrace
 from boxjax.sim.native import NativeBatch
 
-DEFAULT_SLOTS = 8  # boxes per planner call: wider calls cost little less per box, and idle more at the end
+# Boxes per planner call and device: wider calls cost little less per box (benchmarks/episodes.py) and
+# leave more slots idle while the last boxes finish.
+SLOTS_PER_DEVICE = 8
 
 
 def supports(ctrl: ControllerConfig) -> str | None:
@@ -61,6 +65,31 @@ def batched_planner(cfg: Config, ctrl: ControllerConfig):
     """(init, optimize) of the planner `ctrl` names, vmapped over boxes and jitted (cached per config)."""
     mpc = controller.make_planner(cfg, ctrl)
     return jax.jit(jax.vmap(mpc.init)), jax.jit(jax.vmap(mpc.optimize))
+
+
+def use_host_devices(n: int | None = None) -> int:
+    """Ask JAX for `n` host (CPU) devices (default: one per core) so that batched episodes shard their
+    boxes over the cores (`_sharding`). Must run before JAX starts its backend; afterwards (or on an
+    accelerator, where the devices are what they are) it changes nothing. Returns the local devices."""
+    n = n or os.cpu_count() or 1
+    try:
+        jax.config.update("jax_num_cpu_devices", n)
+    except RuntimeError:  # the backend is already up: keep its devices
+        pass
+    return len(jax.local_devices())
+
+
+def _sharding():
+    """(put, n): `put(tree)` places a batch's arrays split along their leading (box) axis over the n
+    local devices (`jax.sharding`; identity for one device), so the vmapped planner runs one shard per
+    device. On a CPU, `jax.config.update("jax_num_cpu_devices", k)` before JAX starts gives k host
+    devices, one per core (`boxjax evaluate` does it): XLA runs these small computations on one core
+    each, so a single device leaves the other cores idle."""
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return (lambda tree: tree), 1
+    sharding = NamedSharding(Mesh(np.asarray(devices), ("boxes",)), PartitionSpec("boxes"))
+    return (lambda tree: jax.device_put(tree, sharding)), len(devices)
 
 
 def _as_key(key):
@@ -141,7 +170,7 @@ def run_episodes(
     ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008 (frozen dataclass: immutable)
     force_map=None,
     max_steps: int | None = None,
-    slots: int = DEFAULT_SLOTS,
+    slots: int | None = None,
     progress: Any = None,
 ) -> list[EpisodeResult]:
     """`controller.run_episode(cfg, truths[j], keys[j], estimator=..., ctrl=...)` for every box j, batched
@@ -151,7 +180,8 @@ def run_episodes(
     Args:
       truths: B mass distributions. keys: B episode keys (jax PRNG keys, typed or raw).
       estimator: "oracle" or a callable as for `run_episode` (called once per box after the exploration).
-      slots: boxes per planner call (1 <= slots; at most B are used).
+      slots: boxes per planner call (default SLOTS_PER_DEVICE per local device; rounded up to a
+        multiple of the devices, the boxes split over them, `use_host_devices`; at most B are used).
       progress: optional callable(box index, EpisodeResult) called as each episode ends.
     Raises:
       ValueError: an unsupported controller (`supports`), no boxes, mismatched keys or slots < 1.
@@ -164,7 +194,7 @@ def run_episodes(
     B = len(truths)
     if B < 1 or len(keys) != B:
         raise ValueError(f"need at least one box and one key per box, got {B} boxes and {len(keys)} keys")
-    if slots < 1:
+    if slots is not None and slots < 1:
         raise ValueError(f"slots must be >= 1, got {slots}")
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
@@ -213,27 +243,30 @@ def run_episodes(
     # 5. the MPC, `slots` boxes per planner call
     if queue:
         init_b, optimize_b = batched_planner(cfg, ctrl)
-        width = min(slots, len(queue))
+        put, n_dev = _sharding()
+        slots = SLOTS_PER_DEVICE * n_dev if slots is None else slots
+        width = -(-min(slots, len(queue)) // n_dev) * n_dev  # a multiple of the devices: equal shards
         windows = {b: controller.first_window(np.stack(rec[b].s)) for b in queue}
 
         def observations(boxes_: list[int]) -> planning.Observation:
             """The planner's observations of these boxes, stacked (one host -> device copy per field)."""
             w = np.stack([prior.check_window(np.asarray(windows[b][-prior.MIN_WINDOW :])) for b in boxes_])
-            return planning.observation(w, sim.belt_speed[boxes_], sim.target_yaw[boxes_])
+            return put(planning.observation(w, sim.belt_speed[boxes_], sim.target_yaw[boxes_]))
 
         first = queue[0]
         slot_box: list[int | None] = [None] * width
-        model_b = _stack([models[first]] * width)
+        model_b = put(_stack([models[first]] * width))
         plan_b = init_b(observations([first] * width))
-        keys_b = jnp.stack([key_plan[first]] * width)
+        keys_b = put(jnp.stack([key_plan[first]] * width))
 
         def admit(k: int) -> None:
             nonlocal model_b, plan_b, keys_b
             b = queue.popleft()
             slot_box[k] = b
-            model_b = _set_slot(model_b, k, models.pop(b))
-            plan_b = _set_slot(plan_b, k, jax.tree.map(lambda x: x[0], init_b(observations([b]))))
-            keys_b = keys_b.at[k].set(key_plan[b])
+            model_b = put(_set_slot(model_b, k, models.pop(b)))
+            first_plan = jax.tree.map(lambda x: x[0], init_b(observations([b] * n_dev)))
+            plan_b = put(_set_slot(plan_b, k, first_plan))
+            keys_b = put(keys_b.at[k].set(key_plan[b]))
 
         for k in range(width):
             if queue:

@@ -405,7 +405,10 @@ def _evaluate_file_box(args, cfg, est, ctrl):
 
 
 def cmd_evaluate(args) -> dict:
-    from boxjax import config_io, experiments
+    from boxjax import batch, config_io, experiments
+
+    if not args.one_at_a_time:
+        batch.use_host_devices()  # one host device per core: the batched planner shards boxes over them
 
     cfg = load_config(args)
     if args.out and os.path.exists(args.out) and os.listdir(args.out) and not args.force:

@@ -263,7 +263,7 @@ def evaluate(
     keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in range(len(boxes))]
     if batched:
         batch.run_episodes(
-            cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots or batch.DEFAULT_SLOTS, progress=done
+            cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, progress=done
         )
     else:
         for j in range(len(boxes)):

@@ -105,3 +105,37 @@ def test_unsupported_controllers_and_bad_arguments_are_named():
         batch.run_episodes(cfg, d, k, slots=0)
     with pytest.raises(ValueError, match="slots"):
         experiments.evaluate(cfg, 1, batched=False, slots=4, progress=False)
+
+
+SHARDED = """
+import json, jax
+from boxjax import batch, controller, massdist
+from boxjax.config import DEFAULT as cfg
+from boxjax.sampling_planner import SamplingOptions
+assert batch.use_host_devices(2) == 2
+ctrl = controller.ControllerConfig(sampling=SamplingOptions(gradient_steps=0))
+dists = [massdist.named(n, cfg.box) for n in ("uniform", "A", "D")]
+keys = [jax.random.PRNGKey(j) for j in range(3)]
+res = batch.run_episodes(cfg, dists, keys, ctrl=ctrl, slots=2, max_steps=55)
+print(json.dumps([[r.summary["steps"], r.summary["aborted"], len(r.plan_ms)] for r in res]))
+"""
+
+
+def test_batched_planner_shards_boxes_over_forced_host_devices():
+    """Two host devices (jax_num_cpu_devices, as `boxjax evaluate` asks for one per core): the boxes of
+    a planner call are split over both, and the episodes run as on one device."""
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", SHARDED], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = json.loads(out.stdout.strip().splitlines()[-1])
+    assert rows == [[55, False, 9], [55, False, 9], [45, True, 0]]
+
+
+def test_sharding_splits_the_box_axis_when_there_are_several_devices():
+    put, n = batch._sharding()
+    assert n == len(jax.local_devices())
+    x = put(np.zeros((2 * n, 3)))
+    assert np.asarray(x).shape == (2 * n, 3)
