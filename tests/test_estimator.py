@@ -365,7 +365,8 @@ def test_calibrate_thresholds_round_trip_and_estimate(trained, tmp_path):
     assert loaded.occupancy_threshold == calibrated.occupancy_threshold and loaded.hazard_threshold == 0.7
 
     out = E.estimate(loaded, held_out["traj"][0], held_out["final"][0])
-    assert set(out) == {"prob", "distribution", "total_mass", "hazard_prob", "hazardous"}
+    assert set(out) == {"prob", "distribution", "members", "total_mass", "hazard_prob", "hazardous"}
+    assert len(out["members"]) == loaded.cfg.members
     assert out["hazardous"] == (out["hazard_prob"] > 0.7)
     np.testing.assert_array_equal(
         np.asarray(out["distribution"].occupancy), out["prob"] > loaded.occupancy_threshold
