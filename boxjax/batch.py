@@ -11,14 +11,17 @@ name) and the same per-box key chain, but
   and plan states, jitted once per shape). A box that ends frees its slot for the next box waiting
   (continuous batching: the batch keeps one shape, so it compiles once, and no box waits for the slowest
   of its group). A box waiting for a slot is paused, not simulated: its world does not move meanwhile.
+* with several local devices the boxes of a call are split over them (`jax.sharding`); on a CPU,
+  `use_host_devices` asks for one host device per core before JAX starts.
 
 What it is not: bit-identical to the one-box path. XLA vectorises a vmapped computation differently from
-one box's (and differently for other batch widths), so a planner's action differs from the one-box
-action at float32 round-off (measured: 1e-6 m/s after one call); slip makes the closed loop chaotic, so a
-single episode may then end differently, while the statistics over boxes agree (benchmarks/episodes.py
-runs both on the same boxes). The physics is the same bit for bit for the same actions (a test), which is
-why every episode's actions are kept (`EpisodeResult.trace.actions`): `replay_episode` re-simulates one
-exactly.
+one box's (and differently for other batch widths), so now and then a planner's action differs from the
+one-box action at float32 round-off, which the Adam refinement can amplify (measured on 12 states: 10
+bit-identical, 2 different by 7.6e-5 and 2.1e-3 m/s); slip makes the closed loop chaotic, so a single
+episode may then end differently, while the statistics over boxes agree within their spread
+(benchmarks/episodes.py runs both on the same boxes; README "Batched episodes"). The physics is the same
+bit for bit for the same actions (a test), so every episode's actions are kept
+(`EpisodeResult.trace.actions`) and `replay_episode` re-simulates any one exactly.
 
 Supported: the jnp planners ("sampling", "paper") with the physics prior and the oracle or a learned
 estimator. The privileged simulator planner, a model in the slot (the black box W), online adaptation and

@@ -447,6 +447,8 @@ def cmd_evaluate(args) -> dict:
         from boxjax.plots import plot_evaluation
 
         summary["plot"] = plot_evaluation(ev, args.plot, cfg)
+    if args.animate_failures:
+        summary["failure_animations"] = experiments.animate_failures(ev, cfg, args.out)
     return summary
 
 
@@ -619,6 +621,13 @@ def add_parsers(sub) -> None:
     )
     option(v, "--out", help="directory: evaluation.json, boxes.npz (for rotate --replay), config.toml")
     option(v, "--force", action="store_true", used_by=(needs("out"),), help="overwrite a non-empty --out")
+    option(
+        v,
+        "--animate-failures",
+        action="store_true",
+        used_by=(needs("out"),),
+        help="a top-view GIF of every failed episode in OUT/failures/ (re-simulated from its actions)",
+    )
     option(v, "--plot", help="balance error over time (paper Fig. 3c) and outcomes over the centre of mass")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
     config_option(v)

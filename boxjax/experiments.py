@@ -262,9 +262,7 @@ def evaluate(
     dists = [boxes.dist(j) for j in range(len(boxes))]
     keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in range(len(boxes))]
     if batched:
-        batch.run_episodes(
-            cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, progress=done
-        )
+        batch.run_episodes(cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, progress=done)
     else:
         for j in range(len(boxes)):
             done(j, run_episode(cfg, dists[j], keys[j], estimator=est, ctrl=ctrl))
@@ -310,6 +308,35 @@ def write_evaluation(ev: Evaluation, out_dir, command: str | None = None) -> dic
         with open(tmp, "w") as f:
             json.dump(doc, f, indent=1)
     return {"evaluation": json_path, "boxes": npz_path}
+
+
+def animate_failures(ev: Evaluation, cfg: Config, out_dir, max_frames: int | None = None) -> list[str]:
+    """A top-view GIF (`animate.animate_episode`) of every failed episode of an evaluation: the safe boxes
+    not turned and not refused, the hazardous boxes not refused. Each episode is re-simulated from its
+    recorded actions (`batch.replay_episode`: the same states bit for bit); files
+    `out_dir/failures/box_K.gif`, written atomically. Returns their paths."""
+    from boxjax import animate
+
+    if ev.actions is None:
+        raise ValueError("this evaluation kept no actions: run it again to animate its failures")
+    paths = []
+    for row in ev.rows:
+        failed = (
+            row["outcome"] != "aborted" if row["hazardous"] else row["outcome"] not in ("success", "aborted")
+        )
+        if not failed:
+            continue
+        j = row["index"]
+        truth, key = ev.boxes.dist(j), jax.random.wrap_key_data(ev.boxes.keys[j])
+        trace = batch.replay_episode(cfg, truth, key, ev.actions[j]).trace
+        os.makedirs(os.path.join(out_dir, "failures"), exist_ok=True)
+        path = os.path.join(out_dir, "failures", f"box_{j}.gif")
+        kw = {} if max_frames is None else {"max_frames": max_frames}
+        title = f"box {j} ({row['family']}): {row['outcome']}"
+        paths.append(
+            animate.animate_episode(trace, path, cfg, truth, title=title, outcome=row["outcome"], **kw)
+        )
+    return paths
 
 
 class EvaluationFileError(ValueError):

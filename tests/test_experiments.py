@@ -159,6 +159,7 @@ def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path
         (["evaluate", "--boxes", "3", "--gradient-steps", "-1"], "--gradient-steps"),
         (["rotate", "--replay", "/nonexistent/dir", "--index", "0"], "no such"),
         (["evaluate", "--boxes", "3", "--belief", "ensemble"], "learned estimator"),
+        (["evaluate", "--boxes", "3", "--animate-failures"], "--out"),
         (["evaluate", "--boxes", "3", "--slots", "4", "--one-at-a-time"], "one by one"),
         (["evaluate", "--boxes", "3", "--slots", "0"], "--slots"),
         (["evaluate", "--boxes", "3", "--planner", "simulator", "--one-at-a-time"], "batched"),
@@ -180,3 +181,36 @@ def test_controller_settings_round_trip():
     ctrl = ControllerConfig(planner="paper", rule="lexicographic", n_samples=30)
     st = json.loads(json.dumps(experiments.settings("oracle", ctrl, 1, "gaussian")))
     assert experiments.controller_from_settings(st) == ctrl
+
+
+def test_failures_are_animated_from_their_recorded_actions(tmp_path):
+    """With a 2 mm balance limit boxes B and D are lost while exploring (failures, no planner needed):
+    their GIFs are written from the episodes' recorded actions; a refused box gets none."""
+    from PIL import Image
+
+    from boxjax import batch
+
+    cfg = CFG.replace(task=TaskConfig(balance_limit=0.002))
+    dists = [massdist.named("B", cfg.box), massdist.named("D", cfg.box)]
+    keys = np.stack([np.asarray(jax.random.PRNGKey(0))] * 2).astype(np.uint32)
+    res = batch.run_episodes(cfg, dists, [jax.random.wrap_key_data(k) for k in keys])
+    assert res[0].summary["lost_exploring"] and res[1].summary["lost_exploring"]
+    boxes = experiments.EvalBoxes(
+        occupancy=np.stack([np.asarray(d.occupancy, np.float32) for d in dists]),
+        total_mass=np.asarray([float(d.total_mass) for d in dists], np.float32),
+        hazardous=np.asarray([False, True]),
+        family=np.asarray(["safe", "gaussian"]),
+        keys=keys,
+    )
+    rows = [experiments._row(j, boxes, r, cfg) for j, r in enumerate(res)]
+    ev = experiments.Evaluation(
+        {}, rows, boxes, [r.trace.balance_error for r in res], [r.trace.actions for r in res]
+    )
+    paths = experiments.animate_failures(ev, cfg, tmp_path, max_frames=8)
+    assert paths == [str(tmp_path / "failures" / f"box_{j}.gif") for j in (0, 1)]
+    refused = [rows[0], {**rows[1], "outcome": "aborted"}]
+    assert experiments.animate_failures(ev._replace(rows=refused), cfg, tmp_path, max_frames=8) == paths[:1]
+    with Image.open(paths[0]) as gif:
+        assert gif.n_frames >= 2
+    with pytest.raises(ValueError, match="no actions"):
+        experiments.animate_failures(ev._replace(actions=None), cfg, tmp_path)
