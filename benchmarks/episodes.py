@@ -5,7 +5,8 @@ Both paths are compiled first on other boxes (a short warm-up episode each), so 
 episodes only; the compile times are reported apart. Also reported: each path's success count (the
 paths agree in distribution, not bit for bit: see boxjax/batch.py), the batched planner's cost per box
 and control step, and one planner call timed alone at several widths (boxes per call) beside the
-unbatched call: what batching can gain at most on this machine.
+unbatched call: what batching can gain at most on this machine; and how often the widest call's actions
+are bit-identical to one-box calls on the same boxes and keys (`agreement`).
 
 Prints ONE JSON object (the last line).
 Run: python benchmarks/episodes.py [--boxes 32] [--slots 8] [--devices 1] [--seed 0] [--max-steps 600]
@@ -43,6 +44,8 @@ def planner_widths(cfg, ctrl, boxes, widths, calls: int = 10) -> dict:
 
     mpc = controller.make_planner(cfg, ctrl)
     w_max = max(widths)
+    if len(boxes) < w_max:
+        boxes = experiments.make_boxes(cfg, w_max, 0, 0)
     models = [controller.planning_model(cfg, ctrl, boxes.dist(j)) for j in range(w_max)]
     s = jnp.array([-0.11, 0.12, 0.01, -0.005, 0.4], jnp.float32)
     obs = planning.observation(
@@ -86,6 +89,16 @@ def planner_widths(cfg, ctrl, boxes, widths, calls: int = 10) -> dict:
             ts.append(time.perf_counter() - t0)
         med = 1e3 * float(np.median(ts))
         out[f"width_{w}"] = {"compile_s": comp, "call_ms": med, "ms_per_box": med / w}
+    # Agreement: the widest call's first actions against one-box calls with the same box and key.
+    kb = jax.random.split(key, w)
+    batched = np.asarray(vm(kb, mb, ob, pb)[0])
+    single = np.stack([np.asarray(mpc.optimize(kb[j], models[j], obs, ps)[0]) for j in range(w)])
+    diff = np.abs(batched - single).max(axis=1)
+    out["agreement"] = {
+        "width": w,
+        "boxes_bit_identical": int(np.sum(diff == 0)),
+        "max_abs_action_diff": float(diff.max()),
+    }
     return out
 
 

@@ -16,8 +16,8 @@ name) and the same per-box key chain, but
 
 What it is not: bit-identical to the one-box path. XLA vectorises a vmapped computation differently from
 one box's (and differently for other batch widths), so now and then a planner's action differs from the
-one-box action at float32 round-off, which the Adam refinement can amplify (measured on 12 states: 10
-bit-identical, 2 different by 7.6e-5 and 2.1e-3 m/s); slip makes the closed loop chaotic, so a single
+one-box action at float32 round-off, which the Adam refinement can amplify (README, "Batched
+episodes"); slip makes the closed loop chaotic, so a single
 episode may then end differently, while the statistics over boxes agree within their spread
 (benchmarks/episodes.py runs both on the same boxes; README "Batched episodes"). The physics is the same
 bit for bit for the same actions (a test), so every episode's actions are kept
