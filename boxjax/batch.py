@@ -160,7 +160,7 @@ def _result(cfg, truth, sim: NativeBatch, b: int, rec: _Record, decided, n_explo
         cfg, truth, final, est, belief, why, n_explore=int(n_explore), lost_exploring=bool(lost),
         wall_s=wall, plan_ms=rec.plan_ms, estimator=estimator,
     )  # fmt: skip
-    timed = rec.plan_ms[1:] if len(rec.plan_ms) > 1 else rec.plan_ms  # the first call compiles
+    timed = controller.timed_calls(rec.plan_ms)
     return EpisodeResult(summary, rec.trace(cfg, wall), belief, truth, np.asarray(timed))
 
 

@@ -37,7 +37,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -352,6 +352,25 @@ def _same(a, b) -> bool:
     return a == b
 
 
+MISSING = object()  # `field_mismatches`: the stored dict has no such field
+
+
+def field_mismatches(stored: dict, expected: dict, fields) -> list[tuple[str, Any, Any]]:
+    """(name, stored value or MISSING, expected value) for each dotted field name where two config
+    dicts differ (floats compared to 1e-9): how a model or calibration file is checked against a config."""
+    out = []
+    for name in fields:
+        want = _get(expected, name)
+        try:
+            have = _get(stored, name)
+        except (KeyError, TypeError):
+            out.append((name, MISSING, want))
+            continue
+        if not _same(have, want):
+            out.append((name, have, want))
+    return out
+
+
 def save(path, fm: ForceMap, config: Config, meta: dict | None = None) -> None:
     """Write a force map to `path` (.npz, no pickle) atomically: a temporary file in the same folder,
     then os.replace, so a reader never sees a half-written file.
@@ -402,17 +421,14 @@ def load(path, expected_config: Config) -> tuple[ForceMap, dict]:
         meta = json.loads(str(data["meta_json"]))
     except (TypeError, ValueError) as e:
         raise CalibrationError(f"calibration file {path!r} is corrupt: unreadable config or meta JSON") from e
-    expected = dataclasses.asdict(expected_config)
-    diffs = []
-    for name in CALIBRATION_FIELDS:
-        try:
-            have = _get(stored, name)
-        except (KeyError, TypeError):
-            diffs.append(f"{name}: missing in the file (expected {_get(expected, name)!r})")
-            continue
-        want = _get(expected, name)
-        if not _same(have, want):
-            diffs.append(f"{name}: file has {have!r}, expected {want!r}")
+    diffs = [
+        f"{name}: missing in the file (expected {want!r})"
+        if have is MISSING
+        else f"{name}: file has {have!r}, expected {want!r}"
+        for name, have, want in field_mismatches(
+            stored, dataclasses.asdict(expected_config), CALIBRATION_FIELDS
+        )
+    ]
     if diffs:
         raise CalibrationError(
             f"calibration file {path!r} was made for another configuration: " + "; ".join(diffs)

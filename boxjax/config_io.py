@@ -172,20 +172,14 @@ def save(path, cfg: Config) -> str:
 def differences(stored: dict, cfg: Config, fields) -> list[str]:
     """'name: model has X, config has Y' for each of `fields` (dotted) where `stored` (a Config's
     `to_dict()`) and `cfg` differ; a field missing from `stored` counts as different."""
-    from boxjax.calibrate import _get, _same  # the calibration file's own field comparison
+    from boxjax.calibrate import MISSING, field_mismatches  # the calibration file's own comparison
 
-    want = cfg.to_dict()
-    out = []
-    for name in fields:
-        try:
-            have = _get(stored, name)
-        except (KeyError, TypeError):
-            out.append(f"{name}: not recorded in the model, config has {_get(want, name)!r}")
-            continue
-        w = _get(want, name)
-        if not _same(have, w):
-            out.append(f"{name}: model has {have!r}, config has {list(w) if isinstance(w, tuple) else w!r}")
-    return out
+    return [
+        f"{name}: not recorded in the model, config has {w!r}"
+        if have is MISSING
+        else f"{name}: model has {have!r}, config has {list(w) if isinstance(w, tuple) else w!r}"
+        for name, have, w in field_mismatches(stored, cfg.to_dict(), fields)
+    ]
 
 
 def _config_flag(config_path) -> str:

@@ -230,6 +230,11 @@ def first_window(s) -> list:
     return window
 
 
+def timed_calls(plan_ms: list) -> list:
+    """The planning times worth a median: all but the first call, which compiles (unless it is alone)."""
+    return plan_ms[1:] if len(plan_ms) > 1 else plan_ms
+
+
 def episode_summary(
     cfg: Config,
     truth: massdist.MassDistribution,
@@ -248,7 +253,7 @@ def episode_summary(
 ) -> dict:
     """An episode's summary (plain data; the CLI's JSON) from the final state's `State.summary()`."""
     aborted = why is not None
-    timed = plan_ms[1:] if len(plan_ms) > 1 else plan_ms  # the first call compiles
+    timed = timed_calls(plan_ms)
     summary = {
         "success": bool(final["success"]) and not aborted,
         "aborted": aborted,
@@ -389,5 +394,5 @@ def run_episode(
         cfg, truth, state.summary(), est, belief, why, n_explore=n_explore, lost_exploring=lost_exploring,
         wall_s=wall, plan_ms=plan_ms, adapt_s=adapt_s, adaptations=adaptations, estimator=estimator,
     )  # fmt: skip
-    timed = plan_ms[1:] if len(plan_ms) > 1 else plan_ms  # the first call compiles
+    timed = timed_calls(plan_ms)
     return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))
