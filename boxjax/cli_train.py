@@ -7,7 +7,7 @@ import os
 import sys
 import time
 
-from boxjax.cli_args import at_least, config_option, option
+from boxjax.cli_args import at_least, config_option, option, when
 from boxjax.cli_episodes import load_config
 
 
@@ -117,20 +117,33 @@ def cmd_calibrate(args) -> dict:
 
 
 def cmd_train_baseline(args) -> dict:
-    from boxjax import baseline_train
+    """W (`--model blackbox`, baseline_train) or the PETS ensemble (`--model pets`, pets_train) on the
+    episodes of one box, collected or read from an earlier run's dataset.npz (--data)."""
+    import dataclasses
 
     cfg = load_config(args)
-    if os.path.exists(os.path.join(args.out, "baseline.npz")) and not args.force:
-        raise ValueError(f"--out {args.out} already holds baseline.npz; pass --force to overwrite it")
-    return baseline_train.train_baseline(
-        cfg,
-        distribution=args.distribution,
-        n_episodes=args.episodes,
-        seed=args.seed,
-        out=args.out,
-        progress=not args.json,
-        data=args.data,
-    )
+    weights = "pets.npz" if args.model == "pets" else "baseline.npz"
+    if os.path.exists(os.path.join(args.out, weights)) and not args.force:
+        raise ValueError(f"--out {args.out} already holds {weights}; pass --force to overwrite it")
+    sizes = {k: v for k, v in (("epochs", args.epochs), ("members", args.members)) if v is not None}
+    common = {
+        "distribution": args.distribution,
+        "n_episodes": args.episodes,
+        "seed": args.seed,
+        "out": args.out,
+        "progress": not args.json,
+        "data": args.data,
+    }
+    if args.model == "pets":
+        from boxjax import pets, pets_train
+
+        config = dataclasses.replace(pets.PETSConfig(), **sizes)
+        report = pets_train.train_pets(cfg, config=config, **common)
+        return {**report, "command": "train-baseline", "model": "pets"}
+    from boxjax import baseline, baseline_train
+
+    config = dataclasses.replace(baseline.BaselineConfig(), **sizes)
+    return {**baseline_train.train_baseline(cfg, config=config, **common), "model": "blackbox"}
 
 
 def cmd_compare(args) -> dict:
@@ -229,13 +242,36 @@ def add_parsers(sub) -> None:
     c.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     c.set_defaults(func=cmd_calibrate)
 
-    b = sub.add_parser("train-baseline", help="collect episodes of one box and train the black box W")
+    b = sub.add_parser(
+        "train-baseline", help="collect episodes of one box and train the black box W (or PETS: --model pets)"
+    )
+    option(b, "--model", choices=("blackbox", "pets"), default="blackbox", help="W or the PETS ensemble")
     option(b, "--distribution", choices=NAMES, default="A", help="the single training environment")
-    option(b, "--episodes", type=int, default=200, help="episodes to collect")
+    pets_data = (
+        lambda a: (
+            "does nothing with --model pets --data: PETS trains on all of the dataset's episodes"
+            if a.model == "pets" and a.data
+            else None
+        ),
+    )
+    option(b, "--episodes", type=int, default=200, used_by=pets_data, help="episodes to collect")
     option(b, "--seed", type=int, default=0, help="PRNG seed")
-    b.add_argument("--out", required=True, help="directory for baseline.npz, dataset.npz, report.json")
+    option(b, "--epochs", type=int, check=at_least(1), help="training epochs (default: W 12, PETS 30)")
+    option(
+        b,
+        "--members",
+        type=int,
+        check=at_least(1),
+        used_by=(when("model", "pets", owner="the PETS ensemble"),),
+        help="ensemble members (default 5)",
+    )
+    b.add_argument(
+        "--out",
+        required=True,
+        help="directory for baseline.npz, dataset.npz, report.json (PETS: pets.npz, pets_report.json)",
+    )
     b.add_argument("--data", help="train on the dataset.npz of an earlier run instead of collecting")
-    b.add_argument("--force", action="store_true", help="overwrite OUT/baseline.npz")
+    b.add_argument("--force", action="store_true", help="overwrite OUT/baseline.npz (PETS: OUT/pets.npz)")
     config_option(b)
     b.add_argument("--json", action="store_true", help="print the report as one JSON line (no progress bars)")
     b.set_defaults(func=cmd_train_baseline)

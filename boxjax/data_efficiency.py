@@ -146,14 +146,11 @@ def train_w(sub: dict, cfg: Config = DEFAULT, seed: int = 0, config=None, progre
     config); returns (model, info: transitions, train/held-out counts, kinds, held-out W error, train_s)."""
     import jax
 
-    from boxjax import baseline, baseline_train
+    from boxjax import baseline, baseline_train, pets_train
 
     config = config or baseline.BaselineConfig()
     tr = {k: v for k, v in sub.items() if k not in ("episode_kind", "episode_outcome")}
-    n = len(sub["episode_kind"])
-    train_tr, held = baseline_train.split(tr, 10 if n >= 10 else n)
-    if held["action"].shape[0] == 0:
-        train_tr, held = baseline_train.split(tr, 2)
+    train_tr, held = pets_train.split_episodes(tr, len(sub["episode_kind"]))
     t0 = time.perf_counter()
     model, _ = baseline_train.train(train_tr, config, seed, cfg, progress)
     jax.block_until_ready(model.params)

@@ -5,10 +5,11 @@ prior pipeline, its noisy variant and random exploration; baseline_train's modul
 same way (by episode, one in 10 held out), so the held-out one-step errors of PETS, W, the prior and
 constant velocity are on the same transitions. Without a dataset, episodes are collected as for W.
 
+    boxjax train-baseline --model pets --data DIR/dataset.npz --out OUT [--seed 0] [--epochs N] [--json]
     python -m boxjax.pets_train --data DIR/dataset.npz --out OUT [--seed 0] [--epochs N] [--json]
 
-(`train_pets` is the function; the CLI owner may expose it as `boxjax train-baseline --model pets`.)
-Writes OUT/pets.npz (the checkpoint) and OUT/report.json atomically.
+(`train_pets` is the function both run.) Writes OUT/pets.npz (the checkpoint) and OUT/pets_report.json
+atomically (not report.json, so OUT may be W's own directory).
 """
 
 from __future__ import annotations
@@ -27,6 +28,19 @@ import optax
 from boxjax import baseline, baseline_train, massdist, pets
 from boxjax.config import DEFAULT, Config
 from boxjax.fileio import atomic_path
+
+REPORT = "pets_report.json"
+
+
+def split_episodes(tr: dict, n_episodes: int) -> tuple[dict, dict]:
+    """(train, held-out) by episode as `baseline_train.train_baseline` splits W's data: one episode in 10
+    held out (one of n below 10 episodes; every second one if that leaves none held out)."""
+    if n_episodes < 2:
+        raise ValueError(f"need at least 2 episodes (one is held out), got {n_episodes}")
+    train_tr, held = baseline_train.split(tr, 10 if n_episodes >= 10 else n_episodes)
+    if held["action"].shape[0] == 0:
+        train_tr, held = baseline_train.split(tr, 2)
+    return train_tr, held
 
 
 def train(
@@ -88,6 +102,8 @@ def train_pets(
     progress: bool = True,
 ) -> dict:
     """Load (or collect) W's data, train, score on the held-out episodes, save. Returns the report."""
+    if data is None and n_episodes < 2:
+        raise ValueError(f"--episodes must be >= 2 (one is held out), got {n_episodes}")
     config = config or pets.PETSConfig()
     truth = massdist.named(distribution, cfg.box)
     t0 = time.perf_counter()
@@ -101,7 +117,7 @@ def train_pets(
         n_episodes = len(kinds)
     tr = {k: v for k, v in tr.items() if k not in ("episode_kind", "episode_outcome")}
     t_data = time.perf_counter() - t0
-    train_tr, held = baseline_train.split(tr, 10 if n_episodes >= 10 else n_episodes)
+    train_tr, held = split_episodes(tr, n_episodes)
     t1 = time.perf_counter()
     model, losses = train(train_tr, config, seed, cfg, progress)
     jax.block_until_ready(model.members.params)
@@ -134,7 +150,7 @@ def train_pets(
         info["heldout_errors"] = {m: held_err[m] for m in ("pets", "blackbox", "prior", "constant_velocity")}
         info["heldout_calibration"] = held_err["pets_calibration"]
         report["weights"] = pets.save(os.path.join(out, "pets.npz"), model, seed, info)
-        with atomic_path(os.path.join(out, "report.json"), suffix=".json") as tmp:
+        with atomic_path(os.path.join(out, REPORT), suffix=".json") as tmp:
             with open(tmp, "w") as f:
                 json.dump(report, f, indent=1)
     report["total_s"] = time.perf_counter() - t0

@@ -286,3 +286,90 @@ def test_bad_config_is_refused_by_name():
         pets.PETSConfig(particles_per_member=0)
     with pytest.raises(ValueError, match="particles_per_member"):
         planning.Ensemble(planning.stack([_tiny_w()]), 0)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# `boxjax train-baseline --model pets` (the CLI of pets_train.train_pets)
+
+
+def _tiny_dataset(path, episodes: int = 4, steps: int = 60) -> dict:
+    """A W dataset file (baseline_train's format) of noisy linear episodes."""
+    tr = _transitions(3, episodes, steps)
+    kinds = np.array([T.KINDS[i % len(T.KINDS)] for i in range(episodes)])
+    np.savez(path, **tr, episode_kind=kinds, episode_outcome=np.array(["step_cap"] * episodes))
+    return tr
+
+
+def test_cli_train_baseline_model_pets_on_a_dataset(tmp_path, capsys, monkeypatch):
+    import json
+
+    from boxjax import cli
+
+    def cheap_comparison(model, tr, truth, cfg=CFG):  # W's and the prior's errors cost ~10 s to compile
+        cv = baseline.summarise_errors(baseline.constant_velocity_errors(tr))
+        return {"blackbox": cv, "prior": cv, "constant_velocity": cv, "transitions": len(tr["action"])}
+
+    monkeypatch.setattr(T, "compare_errors", cheap_comparison)
+    tr = _tiny_dataset(tmp_path / "dataset.npz")
+    out = tmp_path / "run"
+    argv = ["train-baseline", "--model", "pets", "--data", str(tmp_path / "dataset.npz"), "--out", str(out)]
+    assert cli.main([*argv, "--epochs", "2", "--members", "2", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert rep["command"] == "train-baseline" and rep["model"] == "pets"
+    assert rep["episodes"] == 4 and rep["transitions"] == tr["action"].shape[0]
+    assert rep["train_transitions"] + rep["heldout_transitions"] == rep["transitions"]
+    assert rep["config"]["epochs"] == 2 and rep["config"]["members"] == 2 and len(rep["epoch_losses"]) == 2
+    model, meta = pets.load(out / "pets.npz", with_meta=True)
+    assert model.n_members == 2 and meta["info"]["transitions"] == rep["transitions"]
+    with open(out / PT.REPORT) as f:
+        assert json.load(f)["heldout_transitions"] == rep["heldout_transitions"]
+    assert not (out / "baseline.npz").exists() and not (out / "report.json").exists()  # W's files untouched
+    # a second run without --force is refused, by the file's name
+    assert cli.main([*argv, "--epochs", "1"]) == 2
+    assert "already holds pets.npz" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "extra, named",
+    [
+        (["--members", "2"], "--members is an option of the PETS ensemble (--model pets)"),  # W has none
+        (["--model", "pets", "--episodes", "3"], "--episodes does nothing with --model pets --data"),
+        (["--model", "pets", "--epochs", "0"], "--epochs must be >= 1"),
+        (["--model", "pets", "--members", "0"], "--members must be >= 1"),
+    ],
+)
+def test_cli_train_baseline_refuses_an_option_the_model_does_not_use(tmp_path, capsys, extra, named):
+    from boxjax import cli
+
+    out = tmp_path / "never"
+    argv = ["train-baseline", "--data", str(tmp_path / "missing.npz"), "--out", str(out), *extra]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and named in err[0]
+    assert not out.exists()
+
+
+def test_pets_split_needs_two_episodes():
+    tr = _transitions(0, 2, 20)
+    train_tr, held = PT.split_episodes(tr, 2)
+    assert set(np.unique(held["episode"])) == {0} and set(np.unique(train_tr["episode"])) == {1}
+    with pytest.raises(ValueError, match="at least 2 episodes"):
+        PT.split_episodes(tr, 1)
+    with pytest.raises(ValueError, match="--episodes must be >= 2"):
+        PT.train_pets(n_episodes=1, progress=False)
+
+
+def test_cli_train_baseline_model_blackbox_passes_epochs_to_w(tmp_path, monkeypatch, capsys):
+    from boxjax import cli
+
+    seen = {}
+
+    def fake_train_baseline(cfg, **kw):
+        seen.update(kw)
+        return {"command": "train-baseline"}
+
+    monkeypatch.setattr(T, "train_baseline", fake_train_baseline)
+    argv = ["train-baseline", "--data", "d.npz", "--out", str(tmp_path), "--epochs", "3", "--json"]
+    assert cli.main(argv) == 0
+    assert seen["config"] == baseline.BaselineConfig(epochs=3) and seen["data"] == "d.npz"
+    assert seen["n_episodes"] == 200 and '"model": "blackbox"' in capsys.readouterr().out
