@@ -182,27 +182,30 @@ def w_point(
     config=None,
     progress: bool = True,
     tr: dict | None = None,
+    method: str = "blackbox",
 ) -> dict:
     """One W point: W on the first `n_episodes` of the dataset (or the checkpoint `weights`, trained on
     them, e.g. the shipped W for 200), evaluated by `comparison.random_safe` on the first `n_eval` safe
-    boxes of `evaluate --seed eval_seed`."""
-    from boxjax import baseline, baseline_train, comparison
+    boxes of `evaluate --seed eval_seed`. method="pets" with `weights`: a PETS checkpoint instead."""
+    from boxjax import baseline_train, comparison
 
     tr = baseline_train.load_dataset(dataset_path) if tr is None else tr
     sub = w_episodes(tr, n_episodes)
     point: dict = {"episodes": int(n_episodes)}
     if weights is None:
+        if method != "blackbox":
+            raise ValueError(f"only W is trained here; give the {method} checkpoint as weights")
         model, info = train_w(sub, cfg, seed, config, progress)
         point.update(info)
     else:
-        model = baseline.load(weights, gripper=cfg.gripper)
-        point.update(
-            shipped=True, transitions=int(sub["action"].shape[0]), **_shipped_w_info(weights, dataset_path)
-        )
+        model = comparison.load_black_box(method, weights, cfg.gripper)
+        info = _shipped_info(method, weights, dataset_path)
+        point.update(shipped=True, transitions=int(sub["action"].shape[0]), **info)
     t0 = time.perf_counter()
     rows = comparison.random_safe(
-        cfg, n_eval, eval_seed, methods=("blackbox",), model=model, adapt_every=adapt_every, progress=progress
-    )
+        cfg, n_eval, eval_seed, methods=(method,), adapt_every=adapt_every, progress=progress,
+        **{"pets_model" if method == "pets" else "model": model},
+    )  # fmt: skip
     point["eval_s"] = time.perf_counter() - t0
     k = sum(r["success"] for r in rows)
     fails: dict = {}
@@ -221,16 +224,16 @@ def w_point(
     return point
 
 
-def _shipped_w_info(weights: str, dataset_path: str) -> dict:
-    """The shipped W's training counts (its checkpoint) and training time (the report beside its dataset,
-    when it is that run's: same transitions)."""
-    from boxjax import baseline
+def _shipped_info(method: str, weights: str, dataset_path: str) -> dict:
+    """A shipped black box's training counts (its checkpoint) and training time (the report beside its
+    dataset when it is that run's: same transitions)."""
+    from boxjax import baseline, pets
 
-    _, meta = baseline.load(weights, with_meta=True)
+    _, meta = (pets if method == "pets" else baseline).load(weights, with_meta=True)
     info = meta.get("info", {})
-    out = {"train_transitions": info.get("train_transitions"), "train_s": None}
+    out = {"train_transitions": info.get("train_transitions"), "train_s": info.get("train_s")}
     rep = os.path.join(os.path.dirname(os.path.abspath(dataset_path)), "report.json")
-    if os.path.isfile(rep):
+    if out["train_s"] is None and os.path.isfile(rep):
         with open(rep) as f:
             r = json.load(f)
         if r.get("transitions") == info.get("transitions"):
@@ -276,8 +279,8 @@ def check_curve(doc: dict) -> dict:
     for k in ("H", "W", "eval_seed", "command"):
         if k not in doc:
             raise ValueError(f"data-efficiency curve: missing {k!r}")
-    for name, keys in (("H", H_KEYS), ("W", W_KEYS)):
-        for i, p in enumerate(doc[name]):
+    for name, keys in (("H", H_KEYS), ("W", W_KEYS), ("PETS", W_KEYS)):
+        for i, p in enumerate(doc.get(name, [])):
             missing = [k for k in keys if k not in p]
             if missing:
                 raise ValueError(f"data-efficiency curve: {name}[{i}] lacks {missing}")
@@ -318,33 +321,44 @@ def plot_curve(curve: dict, path) -> str:
     styles = {
         "H": ("tab:blue", "o", "physics-prior MPC with H (H's data: random boxes x 45 steps)"),
         "W": ("tab:red", "s", "black box W (episodes of box A)"),
+        "PETS": ("tab:green", "D", "PETS ensemble (W's data)"),
     }
     n_max = 0
-    for name, (color, marker, label) in styles.items():
-        pts = sorted(curve.get(name, []), key=lambda p: p["transitions"])
-        if not pts:
-            continue
+    series = []
+    for name in styles:
+        pts = curve.get(name, [])
+        for adapt in sorted({p.get("adapt_every", 0) for p in pts}, reverse=True) if name != "H" else [None]:
+            group = [p for p in pts if adapt is None or p.get("adapt_every", 0) == adapt]
+            series.append((name, adapt, sorted(group, key=lambda p: p["transitions"])))
+    for name, adapt, pts in series:
+        color, marker, label = styles[name]
         x = np.asarray([p["transitions"] for p in pts], float)
         k = np.asarray([p["safe_success"] for p in pts], float)
         n = np.asarray([p["safe_boxes"] for p in pts], float)
         lo = np.asarray([p["ci95"][0] for p in pts]) * n
         hi = np.asarray([p["ci95"][1] for p in pts]) * n
         n_max = max(n_max, int(n.max()))
-        if name == "W":
-            adapt = sorted({p.get("adapt_every", 0) for p in pts})
-            label += (
-                ", adapted online every " + "/".join(map(str, adapt)) + " steps"
-                if any(adapt)
-                else ", no adaptation"
-            )
-        ax.errorbar(x, k, yerr=[k - lo, hi - k], color=color, marker=marker, capsize=3, label=label)
+        if adapt is not None:
+            label += f", adapted online every {adapt} steps" if adapt else ", no online adaptation"
+        ls = "--" if adapt == 0 else "-"
+        ax.errorbar(
+            x,
+            k,
+            yerr=[np.maximum(k - lo, 0), np.maximum(hi - k, 0)],
+            color=color,
+            marker=marker,
+            ls=ls,
+            capsize=3,
+            label=label,
+        )
         for p, xi, ki in zip(pts, x, k, strict=True):
             size = p["boxes"] if name == "H" else p["episodes"]
             unit = "boxes" if name == "H" else "ep."
             if _is_shipped(name, p):
                 ax.plot([xi], [ki], marker="*", ms=16, color=color, mec="k", zorder=5, ls="none")
+                dy = 8 if name == "PETS" else -22
                 ax.annotate(f"shipped {name}\n{size:,} {unit}", (xi, ki), textcoords="offset points",
-                            xytext=(6, -22), fontsize=8, color=color)  # fmt: skip
+                            xytext=(6, dy), fontsize=8, color=color)  # fmt: skip
             else:
                 ax.annotate(f"{size:,}", (xi, ki), textcoords="offset points", xytext=(4, 5), fontsize=7,
                             color=color)  # fmt: skip
@@ -373,6 +387,7 @@ def main(argv=None) -> int:
     p.add_argument("--adapt-every", type=int, default=20, help="W's online adaptation period (0: none)")
     p.add_argument("--only", choices=("H", "W"), help="run only this curve")
     p.add_argument("--no-shipped", action="store_true", help="leave out the shipped models' points")
+    p.add_argument("--pets", action="store_true", help="add the shipped PETS on the same boxes (key PETS)")
     p.add_argument("--plot-only", action="store_true", help="redraw --plot from --out, run nothing")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
@@ -391,7 +406,7 @@ def main(argv=None) -> int:
         with open(a.out) as f:
             old = check_curve(json.load(f))
         if old["eval_seed"] == a.eval_seed:
-            doc["H"], doc["W"] = old["H"], old["W"]
+            doc.update({k: old[k] for k in ("H", "W", "PETS") if k in old})
     have_h = {pt["boxes"] for pt in doc["H"] if pt["safe_boxes"] == a.eval_boxes}
     have_w = {(pt["episodes"], pt["adapt_every"]) for pt in doc["W"] if pt["safe_boxes"] == a.eval_boxes}
 
@@ -409,6 +424,14 @@ def main(argv=None) -> int:
         eps = [n for n in a.w_episodes if (n, a.adapt_every) not in have_w]
         w_curve(eps, a.data, a.eval_seed, adapt_every=a.adapt_every, n_eval=a.eval_boxes,
                 shipped=not a.no_shipped, progress=progress, on_point=keep)  # fmt: skip
+    have_pets = {pt["adapt_every"] for pt in doc.get("PETS", []) if pt["safe_boxes"] == a.eval_boxes}
+    if a.pets and a.adapt_every not in have_pets:
+        from boxjax import pets
+
+        pt = w_point(SHIPPED_W_EPISODES, a.data, a.eval_seed, adapt_every=a.adapt_every, n_eval=a.eval_boxes,
+                     weights=pets.shipped_path(), progress=progress, method="pets")  # fmt: skip
+        doc["PETS"] = doc.get("PETS", [])
+        keep("PETS", pt)
     write_curve(doc, a.out)
     if a.plot:
         print(plot_curve(doc, a.plot))
