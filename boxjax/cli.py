@@ -25,7 +25,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from boxjax import cli_args, cli_box, cli_episodes, cli_train
+from boxjax import cli_args, cli_box, cli_episodes, cli_reproduce, cli_train
 from boxjax.cli_args import emit
 
 
@@ -35,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     cli_episodes.add_parsers(sub)
     cli_box.add_parsers(sub)
     cli_train.add_parsers(sub)
+    cli_reproduce.add_parsers(sub)
     return p
 
 

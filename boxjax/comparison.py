@@ -9,7 +9,11 @@ planner (`controller.make_planner`, default predictive sampling):
   * "pets" (beyond the paper): the probabilistic ensemble with trajectory sampling (`pets`), trained on
     W's data, in the same slot of the same planner (its particles' costs averaged), adapted as W.
 Each row: method, box, seed, outcome, steps, wall time (adaptation included), adaptation time and count,
-worst balance error. `table` aggregates rows per (box, method) beside the paper's numbers.
+worst balance error. `table` aggregates rows per (box, method) beside the paper's numbers. The prior's
+episodes run batched (`prior_episodes`: `boxjax.batch`, all boxes and seeds in one closed loop, the same
+per-episode keys `PRNGKey(seed)` and summaries as `prior_episode`; a batched row's `wall_s` is the batch's
+wall time divided by its episodes) where the controller allows it; the black boxes adapt online, which
+`batch.supports` refuses, so they run one episode at a time.
 
 `generalisation_gap`: one-step errors of W (trained on A), of PETS (when given) and of the physics prior
 (true masses) on fresh episodes of A and of C (`baseline_train.collect`, another seed than W's data).
@@ -20,6 +24,7 @@ adaptation (W's or PETS's), for this module and the CLI.
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 
@@ -113,6 +118,44 @@ def prior_episode(
     return _row("prior", name, seed, res.summary)
 
 
+def prior_episodes(
+    cfg: Config,
+    jobs,
+    estimator="learned",
+    ctrl: ControllerConfig | None = None,
+    slots: int | None = None,
+    progress=None,
+) -> list[dict]:
+    """`prior_episode(cfg, name, seed)` for every (name, seed) of `jobs`, batched (`batch.run_episodes`:
+    the same box, episode key `PRNGKey(seed)`, estimator and controller; agreement in distribution, not
+    bit for bit, see boxjax/batch.py). Rows in the order of `jobs`, each marked `batched`, its `wall_s`
+    the batch's wall time over the number of episodes. `progress`: callable() once per finished episode.
+
+    Raises:
+      ValueError: a controller the batched path cannot run (`batch.supports`).
+    """
+    from boxjax import batch
+
+    ctrl = ctrl or ControllerConfig()
+    jobs = list(jobs)
+    est = learned_estimator(cfg) if estimator == "learned" else estimator
+    t0 = time.perf_counter()
+    results = batch.run_episodes(
+        cfg,
+        [massdist.named(name, cfg.box) for name, _ in jobs],
+        [jax.random.PRNGKey(seed) for _, seed in jobs],
+        estimator=est,
+        ctrl=ctrl,
+        slots=slots,
+        progress=None if progress is None else (lambda b, res: progress()),
+    )
+    per_episode = (time.perf_counter() - t0) / max(len(jobs), 1)
+    rows = []
+    for (name, seed), res in zip(jobs, results, strict=True):
+        rows.append({**_row("prior", name, seed, res.summary), "wall_s": per_episode, "batched": True})
+    return rows
+
+
 def _row(method: str, name: str, seed: int, s: dict) -> dict:
     return {
         "method": method,
@@ -140,32 +183,65 @@ def compare(
     adapt_epochs: int = 1,
     progress: bool = True,
     pets_model=None,
+    *,
+    estimator="learned",
+    batched: bool | None = None,
+    slots: int | None = None,
+    ctrl: ControllerConfig | None = None,
+    w_weights: str | None = None,
+    h_report=None,
 ) -> dict:
     """Table 1: rows (one per box, method, seed) and `table` (aggregated); plain data. `model`: W for
-    "blackbox", `pets_model`: the ensemble for "pets" (default: the shipped ones)."""
+    "blackbox", `pets_model`: the ensemble for "pets" (default: the shipped ones). `estimator`: the
+    prior's ("learned": the shipped H; or a callable such as `learned_estimator(cfg, weights)`).
+    `batched`: run the prior's episodes together (`prior_episodes`; default: where `batch.supports` the
+    controller), `slots` boxes per planner call. `w_weights` / `h_report`: what Table 2 reads (default:
+    the shipped files)."""
+    from boxjax import batch
+
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}; choose from {METHODS}")
+    ctrl = ctrl or ControllerConfig()
+    why_not = batch.supports(ctrl)
+    if batched and why_not is not None:
+        raise ValueError(f"cannot batch the prior's episodes: {why_not}")
+    batched = why_not is None if batched is None else batched
     models = {"blackbox": model, "pets": pets_model}
     from tqdm.auto import tqdm
 
-    rows = []
     t0 = time.perf_counter()
     jobs = [(m, b, s) for b in boxes for m in methods for s in range(seeds)]
-    for m, b, s in tqdm(jobs, desc="compare (episodes)", disable=not progress, leave=False):
+    done: dict[tuple, dict] = {}
+    bar = tqdm(total=len(jobs), desc="compare (episodes)", disable=not progress, leave=False)
+    est = learned_estimator(cfg) if "prior" in methods and estimator == "learned" else estimator
+    if batched and "prior" in methods:
+        prior_jobs = [(b, s) for m, b, s in jobs if m == "prior"]
+        for r in prior_episodes(cfg, prior_jobs, est, ctrl, slots, progress=lambda: bar.update(1)):
+            done[("prior", r["box"], r["seed"])] = r
+    for m, b, s in jobs:
+        if (m, b, s) in done:
+            continue
         if m == "prior":
-            rows.append(prior_episode(cfg, b, s))
+            done[(m, b, s)] = prior_episode(cfg, b, s, est, ctrl)
         else:
             if models[m] is None:
                 models[m] = load_black_box(m, None, cfg.gripper)
-            rows.append(blackbox_episode(cfg, b, s, models[m], adapt_every, adapt_epochs, method=m))
+            done[(m, b, s)] = blackbox_episode(
+                cfg, b, s, models[m], adapt_every, adapt_epochs, ctrl=ctrl, method=m
+            )
+        bar.update(1)
+    bar.close()
+    rows = [done[j] for j in jobs]
+    pets_weights = pets.shipped_path() if "pets" in methods else None
     return {
         "rows": rows,
         "table": table(rows),
-        "table2": table2(pets_weights=pets.shipped_path() if "pets" in methods else None),
+        "table2": table2(w_weights, pets_weights, h_report),
         "wall_s": time.perf_counter() - t0,
         "adapt_every": adapt_every,
         "adapt_epochs": adapt_epochs,
+        "prior_batched": bool(batched and "prior" in methods),
     }
 
 
@@ -214,16 +290,21 @@ def random_safe(
     return rows
 
 
-def table2(w_weights: str | None = None, pets_weights: str | None = None) -> list[dict]:
+def table2(w_weights: str | None = None, pets_weights: str | None = None, h_report=None) -> list[dict]:
     """Paper Table 2 from what the shipped (or given) models were really trained on: transitions, where
     the data came from, zero-shot or not (read from the estimator's report and W's checkpoint; a PETS
-    row from `pets_weights` when given)."""
+    row from `pets_weights` when given). `h_report`: H's training report (a `train_estimator` report
+    dict or its report.json path; default: the shipped estimator's)."""
     import json
-    import os
 
-    rep = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "estimator_report.json")
-    with open(rep) as f:
-        h = json.load(f)["training"]
+    if h_report is None or isinstance(h_report, (str, os.PathLike)):
+        from boxjax.estimator_pipeline import SHIPPED_REPORT
+
+        with open(SHIPPED_REPORT if h_report is None else h_report) as f:
+            h = json.load(f)
+        h = h["training"] if h_report is None else h
+    else:
+        h = h_report
     _, meta = baseline.load(w_weights or baseline.shipped_path(), with_meta=True)
     info = meta.get("info", {})
     kinds = ", ".join(f"{v} {k}" for k, v in info.get("episodes_by_kind", {}).items())
