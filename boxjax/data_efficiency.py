@@ -375,6 +375,47 @@ def plot_curve(curve: dict, path) -> str:
     return save_figure(fig, path)
 
 
+def format_table(curve: dict) -> str:
+    """Markdown table of the curve's points: model, data, transitions, turned (95 % interval), refused
+    safe boxes (H), other failures, training and evaluation time."""
+    cols = (
+        "model",
+        "data",
+        "transitions",
+        "turned",
+        "95 % interval",
+        "refused",
+        "failures",
+        "data s",
+        "train s",
+        "eval s",
+    )
+    lines = ["| " + " | ".join(cols) + " |", "| --- " * len(cols) + "|"]
+    for name in ("H", "W", "PETS"):
+        for p in sorted(curve.get(name, []), key=lambda q: q["transitions"]):
+            what = f"{p['boxes']:,} boxes" if name == "H" else f"{p['episodes']} episodes"
+            if name != "H":
+                what += f", adapted every {p['adapt_every']}" if p["adapt_every"] else ", no adaptation"
+            if _is_shipped(name, p):
+                what += " (shipped)"
+            fails = ", ".join(f"{k} {v}" for k, v in sorted(p.get("failures", {}).items())) or "-"
+            t, d = ("-" if p.get(k) is None else f"{p[k]:.0f}" for k in ("train_s", "data_s"))
+            cells = (
+                "prior MPC + H" if name == "H" else name,
+                what,
+                f"{p['transitions']:,}",
+                f"{p['safe_success']}/{p['safe_boxes']}",
+                f"{100 * p['ci95'][0]:.0f}-{100 * p['ci95'][1]:.0f} %",
+                str(p.get("false_aborts", "-")),
+                fails,
+                d,
+                t,
+                f"{p['eval_s']:.0f}",
+            )
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m boxjax.data_efficiency", description=__doc__.split("\n")[0])
     p.add_argument("--out", required=True, help="the curve's JSON (kept points are not re-run: resumable)")
@@ -388,14 +429,16 @@ def main(argv=None) -> int:
     p.add_argument("--only", choices=("H", "W"), help="run only this curve")
     p.add_argument("--no-shipped", action="store_true", help="leave out the shipped models' points")
     p.add_argument("--pets", action="store_true", help="add the shipped PETS on the same boxes (key PETS)")
-    p.add_argument("--plot-only", action="store_true", help="redraw --plot from --out, run nothing")
+    p.add_argument("--plot-only", action="store_true", help="redraw --plot from --out (and print the table)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     a = p.parse_args(argv)
     if a.plot_only:
         if not a.plot:
             p.error("--plot-only needs --plot")
         with open(a.out) as f:
-            print(plot_curve(check_curve(json.load(f)), a.plot))
+            doc = check_curve(json.load(f))
+        print(format_table(doc))
+        print(plot_curve(doc, a.plot))
         return 0
     from boxjax import batch
 

@@ -82,6 +82,13 @@ def test_curve_file_schema_round_trip_and_refusals(tmp_path):
         D.check_curve({"H": [], "W": [], "command": "x"})
 
 
+def test_format_table_has_one_row_per_point():
+    lines = D.format_table(_doc()).splitlines()
+    assert len(lines) == 2 + 5
+    assert "| prior MPC + H | 288,000 boxes (shipped) | 12,960,000 | 27/30 |" in lines[4]
+    assert "| W | 10 episodes, adapted every 20 | 3,400 | 3/30 |" in lines[5]
+
+
 def test_plot_curve_writes_a_png_and_plot_only_redraws_it(tmp_path):
     path = D.plot_curve(_doc(), tmp_path / "c.png")
     with open(path, "rb") as f:
