@@ -17,6 +17,8 @@ def cmd_reproduce(args) -> dict:
     from boxjax import batch, reproduce
 
     reproduce.check_out(args.out, args.force)  # before JAX starts: a refusal costs nothing
+    if not args.retrain:
+        reproduce.require_shipped(reproduce.SHIPPED_NEEDED)
     batch.use_host_devices()  # one host device per core: the batched planner shards boxes over them
     cache = reproduce.use_compilation_cache()
     flags = [f for f, on in (("--quick", args.quick), ("--retrain", args.retrain), ("--force", args.force),
@@ -53,24 +55,21 @@ def add_parsers(sub) -> None:
     r = sub.add_parser(
         "reproduce",
         help="run the paper's experiments (Tables 1-2, §4.3, Figs. 2-3) and write DIR/report.md",
-        description="Run the paper's experiments from the shipped weights and write DIR/report.md "
-        "(every table "
-        "beside the paper's numbers, figures linked), DIR/figures/*.png and DIR/results.json.",
+        description="Run the paper's experiments from the shipped weights and write DIR/report.md (every "
+        "table beside the paper's numbers, figures linked), DIR/figures/*.png and DIR/results.json.",
     )
     r.add_argument("--out", required=True, help="output folder (refused if it exists and is not empty)")
     r.add_argument(
         "--quick",
         action="store_true",
-        help="every part on a few boxes and one seed (Table 1: prior on A and D, W on A; validation: 2 "
-        "safe + "
-        "1 hazardous boxes); with --retrain: H on 40 boxes, W on 2 episodes, calibration of 64 transitions",
+        help="every part on a few boxes and one seed (Table 1: prior on A and D, W on A; validation: 2 safe "
+        "+ 1 hazardous boxes); with --retrain: H on 40 boxes, W on 2 episodes, calibration of 64 transitions",
     )
     r.add_argument(
         "--retrain",
         action="store_true",
-        help="make the weights first into DIR/weights (calibration of 2000 transitions, H on 2000 "
-        "boxes, W on "
-        "200 episodes of A) and run the experiments with them",
+        help="make the weights first into DIR/weights (calibration of 2000 transitions, H on 2000 boxes, W "
+        "on 200 episodes of A) and run the experiments with them",
     )
     r.add_argument("--force", action="store_true", help="write into an existing non-empty --out")
     r.add_argument(

@@ -110,7 +110,7 @@ def _header(r: dict) -> list[str]:
                 (
                     "W",
                     f"{rt['baseline']['episodes']} episodes of A ({rt['baseline']['transitions']} "
-                    f"transitions)",
+                    "transitions)",
                     f"`{rt['baseline']['file']}`",
                     f"{rt['baseline']['wall_s']:.1f}",
                 ),
@@ -123,12 +123,11 @@ def _table1(t: dict) -> list[str]:
     lines = [
         "## Table 1: physical priors vs the black-box baseline W",
         "",
-        f"`comparison.compare`: the same predictive-sampling MPC; the prior with the learned H (45-step "
-        f"exploration, counted in its steps, then refuse or turn; zero-shot), W with no exploration, adapted "
+        "`comparison.compare`: the same predictive-sampling MPC; the prior with the learned H (45-step "
+        "exploration, counted in its steps, then refuse or turn; zero-shot), W with no exploration, adapted "
         f"online for {t['adapt_epochs']} epoch every {t['adapt_every']} steps on the episode's data (as the "
-        f"paper). Seeds {', '.join(map(str, t['seeds']))}; episode key {t['episode_key']}. Steps: the "
-        f"mean over "
-        "successful episodes. The prior's wall time per episode is the batch's divided by its episodes.",
+        f"paper). Seeds {', '.join(map(str, t['seeds']))}; episode key {t['episode_key']}. Steps: the mean "
+        "over successful episodes. The prior's wall time per episode is the batch's divided by its episodes.",
         "",
     ]
     rows = []
@@ -227,14 +226,12 @@ def _validation(v: dict) -> list[str]:
     lines = [
         "## §4.3: random boxes (learned H)",
         "",
-        f"`experiments.evaluate`: one closed-loop episode per box, batched, boxes and episode keys from seed "
-        f"{v['seed']} (`experiments.make_boxes`). The paper's experiment (30 random safe boxes) is the "
-        f"first {k} "
-        f"safe boxes of the same run: the safe boxes are drawn in sequence from their own key and box j's "
-        f"episode key is fold_in(key, j), safe boxes first, so they are the boxes and keys of `boxjax "
-        f"evaluate "
-        f"--boxes {k} --seed {v['seed']}` (the batched planner's round-off depends on the call's width, so a "
-        "separate run may end an episode differently).",
+        "`experiments.evaluate`: one closed-loop episode per box, batched, boxes and episode keys from seed "
+        f"{v['seed']} (`experiments.make_boxes`). The paper's experiment (30 random safe boxes) is the first "
+        f"{k} safe boxes of the same run: the safe boxes are drawn in sequence from their own key and box "
+        "j's episode key is fold_in(key, j), safe boxes first, so they are the boxes and keys of `boxjax "
+        f"evaluate --boxes {k} --seed {v['seed']}` (the batched planner's round-off depends on the call's "
+        "width, so a separate run may end an episode differently).",
         "",
     ]
     hz = s["hazardous_boxes"]
@@ -293,9 +290,8 @@ def _validation(v: dict) -> list[str]:
     else:
         lines += [
             f"Validation box {f2['box']} ({f2['true_mass_kg']:.2f} kg), H's prediction from its 45-step "
-            f"exploration: IoU {f2['iou']:.3f}, mass error {f2['mass_error_kg']:+.3f} kg, "
-            f"centre-of-mass error "
-            f"{f2['com_error_cm']:.2f} cm.",
+            f"exploration: IoU {f2['iou']:.3f}, mass error {f2['mass_error_kg']:+.3f} kg, centre-of-mass "
+            f"error {f2['com_error_cm']:.2f} cm.",
             "",
             f"![Fig. 2 (c, d)]({f2['figure']})",
             "",
@@ -308,12 +304,10 @@ def _force_map(fm: dict) -> list[str]:
         "## Fig. 3 (a, b): the action -> force map, all four forces",
         "",
         f"The calibration file `{fm['file']}` (made by `{fm['file_command']}`, {fm['file_transitions']} "
-        f"transitions): its mean and +-1 std per action value, and the samples of "
-        f"{fm['samples_transitions']} "
-        f"transitions collected again with seed {fm['samples_seed']}; refit from them, the means differ from "
-        f"the file's by at most {fm['refit_max_abs_mean_diff_N']:.3g} N. The default controller's "
-        f"`slip` prior "
-        "does not use this map; the paper prior (`--variant paper`) does.",
+        "transitions): its mean and +-1 std per action value, and the samples of "
+        f"{fm['samples_transitions']} transitions collected again with seed {fm['samples_seed']}; refit from "
+        f"them, the means differ from the file's by at most {fm['refit_max_abs_mean_diff_N']:.3g} N. The "
+        "default controller's `slip` prior does not use this map; the paper prior (`--variant paper`) does.",
         "",
     ]
     lines += _table(
@@ -335,11 +329,30 @@ def _data_efficiency(d: dict) -> list[str]:
     if not d["measured"]:
         return lines + [
             f"Not measured: {d['reason']}. Run `{d['command']}` to measure the curve (it writes "
-            f"`{d['source']}`), "
-            "then run `boxjax reproduce` again.",
+            f"`{d['source']}`), then run `boxjax reproduce` again.",
             "",
         ]
-    return lines + [f"From `{d['source']}`.", "", f"![data efficiency]({d['figure']})", ""]
+    curve = d["curve"]
+    lines += [f"From `{d['source']}` (made by `{curve.get('command')}`).", ""]
+    rows = []
+    for model in ("H", "W", "PETS"):
+        for p in sorted(curve.get(model) or [], key=lambda p: p.get("transitions", 0)):
+            data = f"{p['boxes']} boxes" if "boxes" in p else f"{p.get('episodes', '?')} episodes"
+            if p.get("adapt_every"):
+                data += f", adapted every {p['adapt_every']} steps"
+            ci = p.get("ci95")
+            rows.append(
+                (
+                    model,
+                    data,
+                    p.get("transitions"),
+                    f"{p.get('safe_success')}/{p.get('safe_boxes')}",
+                    "-" if not ci else f"{100 * ci[0]:.1f}-{100 * ci[1]:.1f} %",
+                )
+            )
+    if rows:
+        lines += _table(("model", "training data", "transitions", "safe boxes turned", "95 % CI"), rows)
+    return lines + [f"![data efficiency]({d['figure']})", ""]
 
 
 def render(results: dict) -> str:

@@ -118,8 +118,8 @@ def shipped_files() -> dict[str, tuple[str, str]]:
     from boxjax import baseline, calibrate, estimator_pipeline, pets
 
     make_h = (
-        "boxjax train-estimator --boxes 288000 --seed 0 --out h_run, then "
-        "`python -c \"from boxjax.estimator_pipeline import ship_estimator; ship_estimator('h_run')\"`"
+        'boxjax train-estimator --boxes 288000 --seed 0 --out h_run, then `python -c "from '
+        "boxjax.estimator_pipeline import ship_estimator; ship_estimator('h_run')\"`"
     )
     return {
         "estimator": (str(estimator_pipeline.SHIPPED_WEIGHTS), make_h),
@@ -137,6 +137,9 @@ def shipped_files() -> dict[str, tuple[str, str]]:
             "python -m boxjax.pets_train --data w_run/dataset.npz --out p_run, then copy its pets.npz there",
         ),
     }
+
+
+SHIPPED_NEEDED = ("estimator", "estimator_report", "baseline", "calibration", "pets")
 
 
 def require_shipped(names) -> None:
@@ -453,8 +456,8 @@ def force_map(cfg: Config, sizes: Sizes, weights: Weights, fig_dir, progress: bo
     n = int(cal.info["transitions"])
     plots.plot_force_map(
         fm, cal.component, cal.value, cal.force, fig,
-        f"action -> force map (paper Fig. 3 a, b): {os.path.basename(path)}, samples of {n} "
-        f"transitions, seed {seed}",
+        f"action -> force map (paper Fig. 3 a, b): {os.path.basename(path)}, samples of {n} transitions, "
+        f"seed {seed}",
     )  # fmt: skip
     mean, std = np.asarray(fm.mean, np.float64), np.asarray(fm.std, np.float64)
     return {
@@ -506,14 +509,14 @@ def reductions(sizes: Sizes, retrain: bool) -> list[str]:
     if sizes.t1_boxes != FULL.t1_boxes or sizes.t1_seeds != FULL.t1_seeds:
         out.append(
             f"Table 1: the prior on boxes {', '.join(sizes.t1_boxes)}, W on "
-            f"{', '.join(sizes.t1_blackbox_boxes)}, "
-            f"{sizes.t1_seeds} seed(s) (paper: A, B, C, D, 5 executions each)"
+            f"{', '.join(sizes.t1_blackbox_boxes)}, {sizes.t1_seeds} seed(s) (paper: A, B, C, D, 5 "
+            "executions each)"
         )
     if (sizes.val_safe, sizes.val_hazardous) != (FULL.val_safe, FULL.val_hazardous):
         out.append(
-            f"validation: {sizes.val_safe} safe + {sizes.val_hazardous} hazardous boxes (full run: 100 "
-            f"+ 30); the "
-            f"paper's row from the first {min(sizes.val_first, sizes.val_safe)} safe boxes (paper: 30)"
+            f"validation: {sizes.val_safe} safe + {sizes.val_hazardous} hazardous boxes (full run: 100 + "
+            f"30); the paper's row from the first {min(sizes.val_first, sizes.val_safe)} safe boxes (paper: "
+            "30)"
         )
     if sizes.cal_transitions is not None:
         out.append(
@@ -522,10 +525,9 @@ def reductions(sizes: Sizes, retrain: bool) -> list[str]:
         )
     if retrain and sizes.h_boxes != FULL.h_boxes:
         out.append(
-            f"--retrain: H on {sizes.h_boxes} boxes (paper 2000), W on {sizes.w_episodes} episodes "
-            f"(paper ~200), "
-            f"calibration of {sizes.retrain_cal_transitions} transitions: weights for testing the pipeline, "
-            "not for judging the methods"
+            f"--retrain: H on {sizes.h_boxes} boxes (paper 2000), W on {sizes.w_episodes} episodes (paper "
+            f"~200), calibration of {sizes.retrain_cal_transitions} transitions: weights for testing the "
+            "pipeline, not for judging the methods"
         )
     return out
 
@@ -553,7 +555,7 @@ def run(
     out = os.fspath(out)
     check_out(out, force)
     if not retrain:
-        require_shipped(("estimator", "estimator_report", "baseline", "calibration", "pets"))
+        require_shipped(SHIPPED_NEEDED)
     sizes = sizes or (QUICK if quick else FULL)
     for name in (REPORT, RESULTS):  # an interrupted run must not leave the previous report behind
         if os.path.exists(os.path.join(out, name)):
