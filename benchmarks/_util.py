@@ -35,6 +35,17 @@ def machine() -> dict:
     }
 
 
+def emit_to(result: dict, path: str | None = None):
+    """Print the result as ONE JSON line and, with a path, also write it there atomically."""
+    text = json.dumps(result)
+    if path:
+        from boxjax.fileio import atomic_path
+
+        with atomic_path(path, suffix=".json") as tmp, open(tmp, "w") as f:
+            f.write(text + "\n")
+    sys.stdout.write(text + "\n")
+
+
 def emit(result: dict):
     """Print the result as ONE JSON line (the last line of output)."""
     sys.stdout.write(json.dumps(result) + "\n")

@@ -23,7 +23,6 @@ Prints one JSON object as its last stdout line (progress on stderr).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -35,10 +34,10 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(__file__))
 
 import prediction_error as pe  # noqa: E402
+from _util import emit_to  # noqa: E402
 
 from boxjax import geometry, prior  # noqa: E402
 from boxjax.config import DEFAULT  # noqa: E402
-from boxjax.fileio import atomic_path  # noqa: E402
 
 VARIANTS = {
     "prior": {},
@@ -139,12 +138,7 @@ def main(argv=None) -> dict:
             },
         }
     out["wall_s"] = time.perf_counter() - t0
-    text = json.dumps(out)
-    if args.out:
-        with atomic_path(args.out, suffix=".json") as tmp:
-            with open(tmp, "w") as f:
-                f.write(text + "\n")
-    print(text)
+    emit_to(out, args.out)
     return out
 
 

@@ -52,6 +52,9 @@ class ControllerConfig:
     # physics prior per member of H's ensemble (`estimator.predict_members`) in a `planning.Ensemble`, the
     # sampling planner scoring each candidate over the members (`SamplingOptions.particle_risk`).
     belief: str = "mean"
+    # The physics prior's settings (prior.PriorParams: substeps, friction regularisation, carriage
+    # response, ...; None: the defaults of `variant`). Its variant must be `variant`.
+    prior_params: Any = None
 
     def __post_init__(self):
         if self.planner not in PLANNERS:
@@ -64,6 +67,20 @@ class ControllerConfig:
             raise ValueError("belief='ensemble' plans over H's members with the sampling planner only")
         if self.variant not in prior.VARIANTS:
             raise ValueError(f"unknown prior variant {self.variant!r}; choose one of {prior.VARIANTS}")
+        if self.prior_params is not None:
+            if not isinstance(self.prior_params, prior.PriorParams):
+                raise ValueError(
+                    f"prior_params must be a prior.PriorParams, got {type(self.prior_params).__name__}"
+                )
+            if self.prior_params.variant != self.variant:
+                raise ValueError(
+                    f"prior_params is of the {self.prior_params.variant!r} variant but the controller's "
+                    f"variant is {self.variant!r}"
+                )
+
+    def prior_settings(self) -> prior.PriorParams:
+        """The PriorParams the planner's prior is built with."""
+        return self.prior_params if self.prior_params is not None else prior.PriorParams(variant=self.variant)
 
 
 class EpisodeResult(NamedTuple):
@@ -207,7 +224,7 @@ def planning_model(
 
     def on(dist):
         return prior.make_prior(
-            massdist.voxel_masses(dist, cfg.box), force_map, cfg.box, cfg.gripper, variant=ctrl.variant
+            massdist.voxel_masses(dist, cfg.box), force_map, cfg.box, cfg.gripper, ctrl.prior_settings()
         )
 
     if ctrl.belief == "mean":

@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from boxjax import batch, fileio, massdist
+from boxjax import batch, fileio, massdist, prior
 from boxjax.config import Config
 from boxjax.controller import ControllerConfig, run_episode
 
@@ -372,6 +372,8 @@ def controller_from_settings(st: dict) -> ControllerConfig:
         from boxjax.sampling_planner import SamplingOptions
 
         c["sampling"] = SamplingOptions(**c["sampling"])
+    if c.get("prior_params") is not None:
+        c["prior_params"] = prior.PriorParams(**c["prior_params"])
     known = {f.name for f in dataclasses.fields(ControllerConfig)}
     unknown = sorted(set(c) - known)
     if unknown:

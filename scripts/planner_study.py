@@ -2,7 +2,7 @@
 planner study in the README: horizon, knots, MPPI / CEM, gradient refinement, pose cost, observer).
 
     python scripts/planner_study.py --boxes 100 --seed 0 --sampling update=mppi --sampling horizon=20 \
-        [--controller observer_gain=0.3] [--estimator oracle|learned] [--out DIR]
+        [--controller observer_gain=0.3] [--prior carriage_omega=30] [--estimator oracle|learned] [--out DIR]
 
 Values are parsed as JSON (numbers, true / false, "strings" or bare words). Prints one JSON line: the
 evaluation summary (as `boxjax evaluate --json`) and the failed box indices.
@@ -17,6 +17,7 @@ import sys
 from boxjax import experiments
 from boxjax.config import DEFAULT
 from boxjax.controller import ControllerConfig
+from boxjax.prior import PriorParams
 from boxjax.sampling_planner import SamplingOptions
 
 
@@ -41,12 +42,18 @@ def main(argv=None) -> dict:
     ap.add_argument("--estimator", choices=("oracle", "learned"), default="oracle")
     ap.add_argument("--sampling", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--controller", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument(
+        "--prior", action="append", default=[], metavar="KEY=VALUE", help="a prior.PriorParams field"
+    )
     ap.add_argument("--out", help="write evaluation.json and boxes.npz here (for `boxjax rotate --replay`)")
     args = ap.parse_args(argv)
     try:
+        fields = _pairs(args.controller, "controller")
+        prior_params = None
+        if args.prior:
+            prior_params = PriorParams(variant=fields.get("variant", "slip"), **_pairs(args.prior, "prior"))
         ctrl = ControllerConfig(
-            sampling=SamplingOptions(**_pairs(args.sampling, "sampling")),
-            **_pairs(args.controller, "controller"),
+            sampling=SamplingOptions(**_pairs(args.sampling, "sampling")), prior_params=prior_params, **fields
         )
     except (TypeError, ValueError) as e:
         sys.stderr.write(f"planner_study: error: {e}\n")

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from boxjax import experiments, massdist
+from boxjax import controller, experiments, massdist, prior
 from boxjax.cli import main
 from boxjax.config import DEFAULT, TaskConfig
 from boxjax.controller import ControllerConfig, run_episode
@@ -181,6 +181,22 @@ def test_controller_settings_round_trip():
     ctrl = ControllerConfig(planner="paper", rule="lexicographic", n_samples=30)
     st = json.loads(json.dumps(experiments.settings("oracle", ctrl, 1, "gaussian")))
     assert experiments.controller_from_settings(st) == ctrl
+    tuned = ControllerConfig(prior_params=prior.PriorParams(carriage_omega=30.0, slip_eps=0.02))
+    st = json.loads(json.dumps(experiments.settings("oracle", tuned, 1, "gaussian")))
+    assert experiments.controller_from_settings(st) == tuned
+
+
+def test_the_controllers_prior_settings_reach_the_planners_model():
+    cfg = DEFAULT
+    box = massdist.named("A", cfg.box)
+    params = prior.PriorParams(carriage_omega=30.0, n_substeps=3)
+    model = controller.planning_model(cfg, ControllerConfig(prior_params=params), box)
+    assert model.params == params
+    assert controller.planning_model(cfg, ControllerConfig(), box).params == prior.PriorParams()
+    with pytest.raises(ValueError, match="variant"):
+        ControllerConfig(variant="paper", prior_params=params)
+    with pytest.raises(ValueError, match="PriorParams"):
+        ControllerConfig(prior_params={"carriage_omega": 30.0})
 
 
 def test_failures_are_animated_from_their_recorded_actions(tmp_path):
