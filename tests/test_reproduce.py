@@ -62,8 +62,15 @@ def _num(cell: str) -> float:
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
+    import jax
+
     out = tmp_path_factory.mktemp("reproduce") / "out"
-    assert main(["reproduce", "--out", str(out), "--quick", "--json"]) == 0
+    cache = (jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs)
+    try:
+        assert main(["reproduce", "--out", str(out), "--quick", "--json"]) == 0
+    finally:  # the command keeps compiled programs on disk; the rest of the test session does not
+        jax.config.update("jax_compilation_cache_dir", cache[0])
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", cache[1])
     with open(out / "results.json") as f:
         results = json.load(f)
     return out, results, (out / "report.md").read_text()
@@ -238,3 +245,32 @@ def test_batched_prior_rows_are_prior_episode_rows():
     for k in ("outcome", "steps", "max_balance_error_m", "success"):
         assert batched[k] == one[k], k
     assert one["outcome"] == "refused"
+
+
+@pytest.mark.slow
+def test_quick_retrain_uses_its_own_weights(tmp_path):
+    """--quick --retrain makes a calibration, H and W into OUT/weights and runs every part with them
+    (about 3.5 min on 2 loaded cores)."""
+    import jax
+
+    out = tmp_path / "out"
+    cache = jax.config.jax_compilation_cache_dir
+    try:
+        assert main(["reproduce", "--out", str(out), "--quick", "--retrain", "--json"]) == 0
+    finally:
+        jax.config.update("jax_compilation_cache_dir", cache)
+    res = json.loads((out / "results.json").read_text())
+    q = reproduce.QUICK
+    assert res["mode"] == {"quick": True, "retrain": True}
+    assert res["retrain"]["estimator"]["boxes"] == q.h_boxes
+    assert res["retrain"]["baseline"]["episodes"] == q.w_episodes
+    for name in ("calibration.npz", "h/estimator.npz", "w/baseline.npz"):
+        assert (out / "weights" / name).is_file()
+    h_row, w_row = res["table2"]["rows"]  # no PETS row: PETS is not retrained
+    assert h_row["transitions"] == res["retrain"]["estimator"]["transitions"] == 45 * q.h_boxes
+    assert w_row["transitions"] == res["retrain"]["baseline"]["transitions"]
+    assert res["force_map"]["file"] == str(out / "weights" / "calibration.npz")
+    assert res["force_map"]["refit_max_abs_mean_diff_N"] == 0.0  # its own samples, not collected again
+    md = (out / "report.md").read_text()
+    assert "### Retrained weights (--retrain)" in md
+    assert any("--retrain: H on" in r for r in res["reductions"])
