@@ -491,8 +491,11 @@ def data_efficiency(fig_dir) -> dict:
         from boxjax import data_efficiency as de
     except ImportError as e:
         return {**not_measured, "reason": f"boxjax.data_efficiency cannot be imported ({e})"}
-    with open(DATA_EFFICIENCY_JSON) as f:
-        curve = json.load(f)
+    try:
+        with open(DATA_EFFICIENCY_JSON) as f:
+            curve = json.load(f)
+    except (OSError, ValueError) as e:  # e.g. being rewritten by a run of the curve
+        return {**not_measured, "reason": f"{DATA_EFFICIENCY_JSON.name} cannot be read ({e})"}
     try:
         fig = de.plot_curve(curve, os.path.join(fig_dir, "data_efficiency.png"))
     except Exception as e:  # another module's plot: say it failed, keep the rest of the report

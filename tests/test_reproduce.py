@@ -274,3 +274,29 @@ def test_quick_retrain_uses_its_own_weights(tmp_path):
     md = (out / "report.md").read_text()
     assert "### Retrained weights (--retrain)" in md
     assert any("--retrain: H on" in r for r in res["reductions"])
+
+
+def test_data_efficiency_curve_is_guarded(tmp_path, monkeypatch):
+    """Without its results file, with an unreadable one or without the module, the part says the curve was
+    not measured and names the command that measures it; the report says so too."""
+    import sys
+
+    from boxjax import report
+
+    monkeypatch.setattr(reproduce, "DATA_EFFICIENCY_JSON", tmp_path / "missing.json")
+    res = reproduce.data_efficiency(str(tmp_path))
+    assert not res["measured"] and "does not exist" in res["reason"]
+    text = "\n".join(report._data_efficiency(res))
+    assert "Not measured" in text and "`python -m boxjax.data_efficiency`" in text
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"H": [')
+    monkeypatch.setattr(reproduce, "DATA_EFFICIENCY_JSON", bad)
+    assert "cannot be read" in reproduce.data_efficiency(str(tmp_path))["reason"]
+    bad.write_text('{"H": []}')
+    import boxjax
+
+    monkeypatch.setitem(sys.modules, "boxjax.data_efficiency", None)  # the module is not there
+    monkeypatch.delattr(boxjax, "data_efficiency", raising=False)
+    res = reproduce.data_efficiency(str(tmp_path))
+    assert not res["measured"] and "cannot be imported" in res["reason"]
+    assert not list(tmp_path.glob("*.png"))
