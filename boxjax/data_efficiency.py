@@ -356,9 +356,15 @@ def plot_curve(curve: dict, path) -> str:
             unit = "boxes" if name == "H" else "ep."
             if _is_shipped(name, p):
                 ax.plot([xi], [ki], marker="*", ms=16, color=color, mec="k", zorder=5, ls="none")
-                dy = 8 if name == "PETS" else -22
-                ax.annotate(f"shipped {name}\n{size:,} {unit}", (xi, ki), textcoords="offset points",
-                            xytext=(6, dy), fontsize=8, color=color)  # fmt: skip
+                # where the label goes: the shipped W and PETS share their x (W's data)
+                text, (dx, dy) = f"shipped {name}\n{size:,} {unit}", (6, -22)
+                if name == "PETS":
+                    text, (dx, dy) = f"shipped PETS ({size} {unit})", (9, -3)
+                elif adapt:
+                    text, (dx, dy) = f"shipped W, adapted online ({size} {unit})", (9, -3)
+                ax.annotate(
+                    text, (xi, ki), textcoords="offset points", xytext=(dx, dy), fontsize=8, color=color
+                )
             else:
                 ax.annotate(f"{size:,}", (xi, ki), textcoords="offset points", xytext=(4, 5), fontsize=7,
                             color=color)  # fmt: skip
