@@ -10,14 +10,16 @@
     boxjax train-estimator [--boxes 2000] [--seed S] --out DIR [--backend native|mjx] [--chunk 500]
     boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE]
     boxjax calibrate [--transitions 400] [--seed S] --out FILE [--plot FILE.png]
-    boxjax train-baseline [--distribution A] [--episodes 200] [--seed 0] --out DIR [--data FILE]
+    boxjax train-baseline [--model blackbox|pets] [--distribution A] [--episodes 200] [--seed 0] --out DIR
+        [--data FILE] [--epochs N] [--members K]
     boxjax rotate ... --model blackbox [--model-weights FILE] [--adapt-every 20] [--adapt-epochs 1]
     boxjax compare [--seeds 5] [--boxes A B C D] [--methods prior blackbox] [--out DIR]
+    boxjax reproduce --out DIR [--quick] [--retrain] [--force] [--json]        (the paper's tables, figures)
 
-Every command takes --config FILE.toml (box, gripper and task parameters). With --json the last line
-printed is one JSON object (the summary); everything else goes before it. Bad input, and an option that
-the chosen planner, model or estimator does not use (`cli_args`), exit with status 2 and one line saying
-what is wrong.
+Every command but `reproduce` (the shipped weights are the default gripper's) takes --config FILE.toml
+(box, gripper and task parameters). With --json the last line printed is one JSON object (the summary);
+everything else goes before it. Bad input, and an option that the chosen planner, model or estimator
+does not use (`cli_args`), exit with status 2 and one line saying what is wrong.
 """
 
 from __future__ import annotations
