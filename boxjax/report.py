@@ -235,24 +235,25 @@ def _validation(v: dict) -> list[str]:
         "",
     ]
     hz = s["hazardous_boxes"]
+
+    def row(label, x, hazards, paper_cell):
+        return (
+            label,
+            _rate(x["safe_success"], x["safe_boxes"]),
+            pct(x["safe_success_rate"]),
+            ci(x["safe_success_ci95"]),
+            x["false_aborts"],
+            _outcomes(x["failures"]),
+            hazards,
+            paper_cell,
+        )
+
+    paper_cell = f"{paper['safe_success']}/{paper['safe_boxes']} = {100 * paper['safe_success_rate']:.1f} %"
     rows = [
-        (
-            f"first {k} safe boxes (the paper's experiment)",
-            _rate(first["safe_success"], first["safe_boxes"]),
-            pct(first["safe_success_rate"]),
-            ci(first["safe_success_ci95"]),
-            first["false_aborts"],
-            _outcomes(first["failures"]),
-            "-",
-            f"{paper['safe_success']}/{paper['safe_boxes']} = {100 * paper['safe_success_rate']:.1f} %",
-        ),
-        (
+        row(f"first {k} safe boxes (the paper's experiment)", first, "-", paper_cell),
+        row(
             f"{s['safe_boxes']} safe + {hz} hazardous boxes",
-            _rate(s["safe_success"], s["safe_boxes"]),
-            pct(s["safe_success_rate"]),
-            ci(s["safe_success_ci95"]),
-            s["false_aborts"],
-            _outcomes(s["failures"]),
+            s,
             _rate(s["hazard_aborted"], hz) if hz else "-",
             "-",
         ),
@@ -334,24 +335,9 @@ def _data_efficiency(d: dict) -> list[str]:
         ]
     curve = d["curve"]
     lines += [f"From `{d['source']}` (made by `{curve.get('command')}`).", ""]
-    rows = []
-    for model in ("H", "W", "PETS"):
-        for p in sorted(curve.get(model) or [], key=lambda p: p.get("transitions", 0)):
-            data = f"{p['boxes']} boxes" if "boxes" in p else f"{p.get('episodes', '?')} episodes"
-            if p.get("adapt_every"):
-                data += f", adapted every {p['adapt_every']} steps"
-            ci = p.get("ci95")
-            rows.append(
-                (
-                    model,
-                    data,
-                    p.get("transitions"),
-                    f"{p.get('safe_success')}/{p.get('safe_boxes')}",
-                    "-" if not ci else f"{100 * ci[0]:.1f}-{100 * ci[1]:.1f} %",
-                )
-            )
-    if rows:
-        lines += _table(("model", "training data", "transitions", "safe boxes turned", "95 % CI"), rows)
+    from boxjax.data_efficiency import format_table  # the curve's own table (pure; the module is light)
+
+    lines += [format_table(curve), ""]
     return lines + [f"![data efficiency]({d['figure']})", ""]
 
 
