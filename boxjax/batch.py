@@ -24,12 +24,16 @@ bit for bit for the same actions (a test), so every episode's actions are kept
 (`EpisodeResult.trace.actions`) and `replay_episode` re-simulates any one exactly.
 
 Supported: the jnp planners ("sampling", "paper") with the physics prior and the oracle or a learned
-estimator. The privileged simulator planner, a model in the slot (the black box W), online adaptation and
-the drift observer run through `controller.run_episode`, one box at a time (`supports` says which).
+estimator, or with a model in the slot (the black box W, PETS) and its online adaptation: each box's
+model is its own slot of the batched model, re-fitted on its own episode every `ctrl.adapt_every` MPC
+steps (the one-box adapter, called per box on the host; cheap beside the planning, README). The
+privileged simulator planner and the drift observer run through `controller.run_episode`, one box at a
+time (`supports` says which).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from collections import deque
@@ -58,8 +62,6 @@ def supports(ctrl: ControllerConfig) -> str | None:
         return f"the {ctrl.planner!r} planner is not vmappable (it plans on the host)"
     if ctrl.observer_gain > 0:
         return "the drift observer (observer_gain > 0) runs one box at a time"
-    if ctrl.adapt_every > 0:
-        return "online adaptation (adapt_every > 0) runs one box at a time"
     return None
 
 
@@ -107,7 +109,10 @@ def _stack(trees):
     return jax.tree.map(lambda *x: jnp.stack(x), *trees)
 
 
-def _set_slot(batch, k: int, tree):
+@functools.partial(jax.jit, donate_argnums=0)
+def _set_slot(batch, k, tree):
+    """`batch` with slot k replaced by `tree`, in place: the batch's buffers are donated, so replacing
+    one box's W (2.45e6 parameters) does not copy the other boxes' models."""
     return jax.tree.map(lambda b, x: b.at[k].set(x), batch, tree)
 
 
@@ -123,6 +128,8 @@ class _Record:
         self.actions: list[np.ndarray] = []
         self.clipped: list[bool] = []
         self.plan_ms: list[float] = []
+        self.mpc_steps = 0  # planner calls so far
+        self.adapt_s, self.adaptations = 0.0, 0  # online adaptation: wall time, calls
 
     def add(self, sim: NativeBatch, b: int, action) -> None:
         self.actions.append(np.asarray(action, np.float64))
@@ -132,7 +139,8 @@ class _Record:
         self.clipped.append(bool(sim.clipped[b]))
 
     def exploration(self) -> dict:
-        """The episode so far as the estimators take it: s (T+1, 5), belt_speed (T+1, 2), actions (T, 4)."""
+        """The episode so far as the estimators and adapters take it: s (T+1, 5), belt_speed (T+1, 2),
+        actions (T, 4)."""
         return {
             "s": np.stack(self.s),
             "belt_speed": np.stack(self.belt_speed),
@@ -158,7 +166,8 @@ def _result(cfg, truth, sim: NativeBatch, b: int, rec: _Record, decided, n_explo
     final = sim.state(b).summary()
     summary = controller.episode_summary(
         cfg, truth, final, est, belief, why, n_explore=int(n_explore), lost_exploring=bool(lost),
-        wall_s=wall, plan_ms=rec.plan_ms, estimator=estimator,
+        wall_s=wall, plan_ms=rec.plan_ms, adapt_s=rec.adapt_s, adaptations=rec.adaptations,
+        estimator=estimator,
     )  # fmt: skip
     timed = controller.timed_calls(rec.plan_ms)
     return EpisodeResult(summary, rec.trace(cfg, wall), belief, truth, np.asarray(timed))
@@ -175,6 +184,8 @@ def run_episodes(
     max_steps: int | None = None,
     slots: int | None = None,
     progress: Any = None,
+    model: Any = None,
+    adapter: Any = None,
 ) -> list[EpisodeResult]:
     """`controller.run_episode(cfg, truths[j], keys[j], estimator=..., ctrl=...)` for every box j, batched
     (see the module docstring). Returns one EpisodeResult per box, in order; `wall_s` of each is the
@@ -186,8 +197,13 @@ def run_episodes(
       slots: boxes per planner call (default SLOTS_PER_DEVICE per local device; rounded up to a
         multiple of the devices, the boxes split over them, `use_host_devices`; at most B are used).
       progress: optional callable(box index, EpisodeResult) called as each episode ends.
+      model: a model for the planners' slot used for every box (as `run_episode`'s: the estimator and
+        the hazard check are skipped); None: the physics prior on each box's belief.
+      adapter: online adaptation as for `run_episode`: `adapter(model, episode data so far)` replaces a
+        box's model every `ctrl.adapt_every` of its MPC steps.
     Raises:
-      ValueError: an unsupported controller (`supports`), no boxes, mismatched keys or slots < 1.
+      ValueError: an unsupported controller (`supports`), no boxes, mismatched keys, slots < 1, or an
+        adapter with ctrl.adapt_every < 1.
       RuntimeError: a planner produced a non-finite action (naming the box).
     """
     why_not = supports(ctrl)
@@ -199,6 +215,8 @@ def run_episodes(
         raise ValueError(f"need at least one box and one key per box, got {B} boxes and {len(keys)} keys")
     if slots is not None and slots < 1:
         raise ValueError(f"slots must be >= 1, got {slots}")
+    if adapter is not None and ctrl.adapt_every < 1:
+        raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
     split = [jax.random.split(_as_key(k)) for k in keys]
@@ -235,12 +253,15 @@ def run_episodes(
         if lost[b]:
             finish(b, int(n_explore[b]), True)
             continue
-        decided[b] = controller.decide(cfg, truths[b], rec[b].exploration(), estimator)
+        if model is None:
+            decided[b] = controller.decide(cfg, truths[b], rec[b].exploration(), estimator)
         est, belief, why = decided[b]
         if why is not None or sim.t[b] >= max_steps:
             finish(b, int(n_explore[b]), False)
             continue
-        models[b] = controller.planning_model(cfg, ctrl, belief, force_map, est)
+        models[b] = (
+            model if model is not None else controller.planning_model(cfg, ctrl, belief, force_map, est)
+        )
         queue.append(b)
 
     # 5. the MPC, `slots` boxes per planner call
@@ -266,7 +287,7 @@ def run_episodes(
             nonlocal model_b, plan_b, keys_b
             b = queue.popleft()
             slot_box[k] = b
-            model_b = put(_set_slot(model_b, k, models.pop(b)))
+            model_b = put(_set_slot(model_b, k, models[b]))
             first_plan = jax.tree.map(lambda x: x[0], init_b(observations([b] * n_dev)))
             plan_b = put(_set_slot(plan_b, k, first_plan))
             keys_b = put(keys_b.at[k].set(key_plan[b]))
@@ -276,6 +297,15 @@ def run_episodes(
                 admit(k)
         while any(b is not None for b in slot_box):
             live = [b for b in slot_box if b is not None]
+            for k, b in enumerate(slot_box):  # online adaptation, each box on its own episode so far
+                r = None if b is None else rec[b]
+                if adapter is None or r is None or r.mpc_steps == 0 or r.mpc_steps % ctrl.adapt_every:
+                    continue
+                t0 = time.perf_counter()
+                models[b] = adapter(models[b], r.exploration())
+                model_b = put(_set_slot(model_b, k, models[b]))
+                r.adapt_s += time.perf_counter() - t0
+                r.adaptations += 1
             obs_b = observations([b if b is not None else live[0] for b in slot_box])
             pair = jax.vmap(jax.random.split)(keys_b)
             keys_b, key_step = pair[:, 0], pair[:, 1]
@@ -294,6 +324,7 @@ def run_episodes(
                     )
                 full[b], active[b] = actions[k], True
                 rec[b].plan_ms.append(ms)
+                rec[b].mpc_steps += 1
             sim.step(full, active)
             for k, b in enumerate(slot_box):
                 if b is None:
@@ -303,6 +334,7 @@ def run_episodes(
                 if sim.done[b] or sim.t[b] >= max_steps:
                     finish(b, int(n_explore[b]), False)
                     slot_box[k] = None
+                    models.pop(b)
                     if queue:
                         admit(k)
     return results  # type: ignore[return-value]

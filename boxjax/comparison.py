@@ -12,8 +12,11 @@ Each row: method, box, seed, outcome, steps, wall time (adaptation included), ad
 worst balance error. `table` aggregates rows per (box, method) beside the paper's numbers. The prior's
 episodes run batched (`prior_episodes`: `boxjax.batch`, all boxes and seeds in one closed loop, the same
 per-episode keys `PRNGKey(seed)` and summaries as `prior_episode`; a batched row's `wall_s` is the batch's
-wall time divided by its episodes) where the controller allows it; the black boxes adapt online, which
-`batch.supports` refuses, so they run one episode at a time.
+wall time divided by its episodes) where the controller allows it. The black boxes' episodes can run
+batched too (`blackbox_episodes`, `batch_black_boxes=True`: every episode its own copy of the model,
+adapted online on its own data, the same schedule and keys as `blackbox_episode`), but by default run
+one at a time: on a CPU their planning is bound by W's matrix products, so a batch is no faster
+(`benchmarks/blackbox_episodes.py`, README "Black-box baseline W").
 
 `generalisation_gap`: one-step errors of W (trained on A), of PETS (when given) and of the physics prior
 (true masses) on fresh episodes of A and of C (`baseline_train.collect`, another seed than W's data).
@@ -24,6 +27,7 @@ adaptation (W's or PETS's), for this module and the CLI.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import statistics
 import time
@@ -88,19 +92,69 @@ def blackbox_episode(
     adapt_epochs: int = 1,
     ctrl: ControllerConfig | None = None,
     method: str = "blackbox",
+    max_steps: int | None = None,
 ) -> dict:
     """One episode of a black box (W, or PETS with method="pets"; online adaptation) on the named box; a
-    plain row named `method`."""
+    plain row named `method`. `max_steps`: the step cap (default the task's)."""
     model = load_black_box(method, None, cfg.gripper) if model is None else model
-    ctrl = ctrl or ControllerConfig()
     adapter = adapter_for(model, adapt_epochs) if adapt_every > 0 else None
-    ctrl = ControllerConfig(
-        **{**ctrl.__dict__, "explore": False, "adapt_every": adapt_every if adapter else 0}
-    )
+    ctrl = _blackbox_ctrl(ctrl, adapt_every, adapter)
     res = run_episode(
-        cfg, massdist.named(name, cfg.box), jax.random.PRNGKey(seed), ctrl=ctrl, model=model, adapter=adapter
+        cfg,
+        massdist.named(name, cfg.box),
+        jax.random.PRNGKey(seed),
+        ctrl=ctrl,
+        model=model,
+        adapter=adapter,
+        max_steps=max_steps,
     )
     return _row(method, name, seed, res.summary)
+
+
+def _blackbox_ctrl(ctrl: ControllerConfig | None, adapt_every: int, adapter) -> ControllerConfig:
+    """A black box's controller: no exploration (it has no estimate to make), its adaptation schedule."""
+    ctrl = ctrl or ControllerConfig()
+    return dataclasses.replace(ctrl, explore=False, adapt_every=adapt_every if adapter else 0)
+
+
+def blackbox_episodes(
+    cfg: Config,
+    jobs,
+    model=None,
+    adapt_every: int = 20,
+    adapt_epochs: int = 1,
+    ctrl: ControllerConfig | None = None,
+    method: str = "blackbox",
+    slots: int | None = None,
+    progress=None,
+    max_steps: int | None = None,
+) -> list[dict]:
+    """`blackbox_episode(cfg, name, seed, model, ...)` for every (name, seed) of `jobs`, batched
+    (`batch.run_episodes` with the model in the slot: one planner call per control step for all
+    episodes, each episode adapting its own copy of the model on its own data every `adapt_every`
+    steps). Rows as `prior_episodes`'s, each marked `batched`."""
+    from boxjax import batch
+
+    model = load_black_box(method, None, cfg.gripper) if model is None else model
+    adapter = adapter_for(model, adapt_epochs) if adapt_every > 0 else None
+    jobs = list(jobs)
+    t0 = time.perf_counter()
+    results = batch.run_episodes(
+        cfg,
+        [massdist.named(name, cfg.box) for name, _ in jobs],
+        [jax.random.PRNGKey(seed) for _, seed in jobs],
+        ctrl=_blackbox_ctrl(ctrl, adapt_every, adapter),
+        slots=slots,
+        progress=None if progress is None else (lambda b, res: progress()),
+        model=model,
+        adapter=adapter,
+        max_steps=max_steps,
+    )
+    per_episode = (time.perf_counter() - t0) / max(len(jobs), 1)
+    return [
+        {**_row(method, name, seed, res.summary), "wall_s": per_episode, "batched": True}
+        for (name, seed), res in zip(jobs, results, strict=True)
+    ]
 
 
 def prior_episode(
@@ -190,13 +244,15 @@ def compare(
     ctrl: ControllerConfig | None = None,
     w_weights: str | None = None,
     h_report=None,
+    batch_black_boxes: bool = False,
 ) -> dict:
     """Table 1: rows (one per box, method, seed) and `table` (aggregated); plain data. `model`: W for
     "blackbox", `pets_model`: the ensemble for "pets" (default: the shipped ones). `estimator`: the
     prior's ("learned": the shipped H; or a callable such as `learned_estimator(cfg, weights)`).
     `batched`: run the prior's episodes together (`prior_episodes`; default: where `batch.supports` the
-    controller), `slots` boxes per planner call. `w_weights` / `h_report`: what Table 2 reads (default:
-    the shipped files)."""
+    controller), `slots` boxes per planner call; `batch_black_boxes`: the black boxes' episodes too
+    (`blackbox_episodes`; off by default, see the module docstring). `w_weights` / `h_report`:
+    what Table 2 reads (default: the shipped files)."""
     from boxjax import batch
 
     unknown = [m for m in methods if m not in METHODS]
@@ -206,6 +262,8 @@ def compare(
     why_not = batch.supports(ctrl)
     if batched and why_not is not None:
         raise ValueError(f"cannot batch the prior's episodes: {why_not}")
+    if batch_black_boxes and why_not is not None:
+        raise ValueError(f"cannot batch the black boxes' episodes: {why_not}")
     batched = why_not is None if batched is None else batched
     models = {"blackbox": model, "pets": pets_model}
     from tqdm.auto import tqdm
@@ -219,6 +277,15 @@ def compare(
         prior_jobs = [(b, s) for m, b, s in jobs if m == "prior"]
         for r in prior_episodes(cfg, prior_jobs, est, ctrl, slots, progress=lambda: bar.update(1)):
             done[("prior", r["box"], r["seed"])] = r
+    for m in [m for m in methods if m in BLACK_BOXES] if batch_black_boxes else ():
+        if models[m] is None:
+            models[m] = load_black_box(m, None, cfg.gripper)
+        m_jobs = [(b, s) for mm, b, s in jobs if mm == m]
+        rows_m = blackbox_episodes(
+            cfg, m_jobs, models[m], adapt_every, adapt_epochs, ctrl, m, slots, progress=lambda: bar.update(1)
+        )
+        for r in rows_m:
+            done[(m, r["box"], r["seed"])] = r
     for m, b, s in jobs:
         if (m, b, s) in done:
             continue
@@ -242,6 +309,7 @@ def compare(
         "adapt_every": adapt_every,
         "adapt_epochs": adapt_epochs,
         "prior_batched": bool(batched and "prior" in methods),
+        "blackbox_batched": bool(batch_black_boxes and any(m in BLACK_BOXES for m in methods)),
     }
 
 

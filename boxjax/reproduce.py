@@ -274,6 +274,7 @@ def table1(cfg: Config, sizes: Sizes, weights: Weights, progress: bool = True) -
         "adapt_every": black["adapt_every"],
         "adapt_epochs": black["adapt_epochs"],
         "prior_batched": prior["prior_batched"],
+        "blackbox_batched": black["blackbox_batched"],
         "rows": rows,
         "table": comparison.table(rows),
         "wall_s": {"prior": t_prior, "blackbox": t_black},
