@@ -8,8 +8,8 @@ old report.md / results.json are removed before anything runs.
 
 Parts (sizes in `FULL` / `QUICK`; every reduction against the paper is listed in the results' `reductions`):
   * `table1`: paper Table 1, `comparison.compare`: the physics prior with the learned H (its episodes
-    batched, `boxjax.batch`) and the black box W adapted online (one episode at a time: online
-    adaptation cannot batch, `batch.supports`) on boxes A, B, C, D, seeds 0-4;
+    batched, `boxjax.batch`) and the black box W adapted online (one episode at a time: batched they are
+    no faster on a CPU, `comparison.blackbox_episodes`) on boxes A, B, C, D, seeds 0-4;
   * `table2`: paper Table 2, `comparison.table2` (what H, W and PETS were trained on, read from their
     files);
   * `validation`: paper §4.3, `experiments.evaluate` with the learned H on 100 random safe and 30 random
