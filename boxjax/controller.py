@@ -53,7 +53,9 @@ class ControllerConfig:
     # sampling planner scoring each candidate over the members (`SamplingOptions.particle_risk`).
     belief: str = "mean"
     # The physics prior's settings (prior.PriorParams: substeps, friction regularisation, carriage
-    # response, ...; None: the defaults of `variant`). Its variant must be `variant`.
+    # response, ...; None: the defaults of `variant`). Its variant must be `variant`. A tuple of several
+    # plans over a mixture of priors (`planning.Mixture`: one particle per setting, scored by
+    # `SamplingOptions.particle_risk`; the sampling planner and belief="mean" only).
     prior_params: Any = None
 
     def __post_init__(self):
@@ -68,18 +70,27 @@ class ControllerConfig:
         if self.variant not in prior.VARIANTS:
             raise ValueError(f"unknown prior variant {self.variant!r}; choose one of {prior.VARIANTS}")
         if self.prior_params is not None:
-            if not isinstance(self.prior_params, prior.PriorParams):
+            mixture = isinstance(self.prior_params, tuple)
+            for p in self.prior_params if mixture else (self.prior_params,):
+                if not isinstance(p, prior.PriorParams):
+                    raise ValueError(
+                        f"prior_params must be a prior.PriorParams or a tuple of them, got {type(p).__name__}"
+                    )
+                if p.variant != self.variant:
+                    raise ValueError(
+                        f"prior_params is of the {p.variant!r} variant but the controller's "
+                        f"variant is {self.variant!r}"
+                    )
+            if mixture and (
+                len(self.prior_params) < 2 or self.planner != "sampling" or self.belief != "mean"
+            ):
                 raise ValueError(
-                    f"prior_params must be a prior.PriorParams, got {type(self.prior_params).__name__}"
-                )
-            if self.prior_params.variant != self.variant:
-                raise ValueError(
-                    f"prior_params is of the {self.prior_params.variant!r} variant but the controller's "
-                    f"variant is {self.variant!r}"
+                    "a mixture of priors (prior_params as a tuple) needs at least two settings, the "
+                    "sampling planner and belief='mean'"
                 )
 
-    def prior_settings(self) -> prior.PriorParams:
-        """The PriorParams the planner's prior is built with."""
+    def prior_settings(self) -> prior.PriorParams | tuple:
+        """The PriorParams the planner's prior is built with (a tuple: a mixture of priors)."""
         return self.prior_params if self.prior_params is not None else prior.PriorParams(variant=self.variant)
 
 
@@ -216,17 +227,25 @@ def planning_model(
 ):
     """The model the planners plan with: the physics prior (`ctrl.variant`) on the belief, or with
     `ctrl.belief == "ensemble"` a `planning.Ensemble` of one prior per member of the estimate
-    (`est["members"]`, the learned H's ensemble)."""
+    (`est["members"]`, the learned H's ensemble), or with a tuple of `ctrl.prior_params` a
+    `planning.Mixture` of one prior per setting on the belief."""
     if ctrl.variant == "paper" and force_map is None:
         from boxjax.calibrate import default_force_map
 
         force_map = default_force_map(cfg)
 
-    def on(dist):
+    def on(dist, params=None):
         return prior.make_prior(
-            massdist.voxel_masses(dist, cfg.box), force_map, cfg.box, cfg.gripper, ctrl.prior_settings()
+            massdist.voxel_masses(dist, cfg.box),
+            force_map,
+            cfg.box,
+            cfg.gripper,
+            params or ctrl.prior_settings(),
         )
 
+    if isinstance(ctrl.prior_settings(), tuple):
+        base = on(belief, ctrl.prior_settings()[0])
+        return planning.Mixture(tuple(dataclasses.replace(base, params=p) for p in ctrl.prior_settings()))
     if ctrl.belief == "mean":
         return on(belief)
     members = (est or {}).get("members")

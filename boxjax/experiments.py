@@ -372,8 +372,11 @@ def controller_from_settings(st: dict) -> ControllerConfig:
         from boxjax.sampling_planner import SamplingOptions
 
         c["sampling"] = SamplingOptions(**c["sampling"])
-    if c.get("prior_params") is not None:
-        c["prior_params"] = prior.PriorParams(**c["prior_params"])
+    pp = c.get("prior_params")
+    if isinstance(pp, list | tuple):  # a mixture of priors
+        c["prior_params"] = tuple(prior.PriorParams(**p) for p in pp)
+    elif pp is not None:
+        c["prior_params"] = prior.PriorParams(**pp)
     known = {f.name for f in dataclasses.fields(ControllerConfig)}
     unknown = sorted(set(c) - known)
     if unknown:

@@ -48,6 +48,10 @@ particle per member is all there is. The plain slot of an Ensemble (`rollout_seq
 `stability_margin`) is the members' mean (mbrl-lib's "expectation"), so planners without particles, the
 one-step error tables and the adapters still take it.
 
+`Mixture(members)` holds models that cannot be stacked (other static settings, other types: priors
+with different `prior.PriorParams`, `ControllerConfig.prior_params` given as a tuple), one
+deterministic particle each, looped over inside the traced function.
+
 Keys. Particles that need noise get it from the key the planner is given for the control step
 (`sampling_planner.plan` folds in `PARTICLE_STREAM`): the same particle noise for every candidate of
 that step (common random numbers, as hydrax shares its domain randomisations across rollouts), fresh
@@ -285,3 +289,39 @@ class Ensemble:
     def stability_margin(self, s) -> jax.Array:
         """() m, the members' mean margin at `s`."""
         return jnp.mean(jax.vmap(lambda m: m.stability_margin(s))(self.members))
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["members"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class Mixture:
+    """Models of DIFFERENT static settings or types (a tuple: e.g. physics priors with other
+    `prior.PriorParams`, or a prior beside a black box), a particle model of the slot with one
+    deterministic particle per member. Where an `Ensemble` vmaps over stacked members of one type, a
+    Mixture loops over its members inside the traced function (each keeps its own static settings).
+    The plain slot is the members' mean, as an Ensemble's."""
+
+    members: tuple
+
+    def __post_init__(self):
+        if not isinstance(self.members, tuple) or not self.members:
+            raise ValueError("a Mixture needs a non-empty tuple of models")
+
+    @property
+    def n_particles(self) -> int:
+        return len(self.members)
+
+    def rollout_particles(self, key, window, belt_speed, actions) -> jax.Array:
+        """(M, H, 5): member m's own rollout (`key` unused: the members are deterministic)."""
+        return jnp.stack([m.rollout_sequence(window, belt_speed, actions) for m in self.members])
+
+    def particle_margins(self, states) -> jax.Array:
+        """(M, H) m: each particle's margin under its own member."""
+        return jnp.stack([jax.vmap(m.stability_margin)(s) for m, s in zip(self.members, states, strict=True)])
+
+    def rollout_sequence(self, window, belt_speed, actions) -> jax.Array:
+        """(H, 5) the mean over members of each member's rollout."""
+        return jnp.mean(self.rollout_particles(None, window, belt_speed, actions), axis=0)
+
+    def stability_margin(self, s) -> jax.Array:
+        """() m, the members' mean margin at `s`."""
+        return jnp.mean(jnp.stack([m.stability_margin(s) for m in self.members]))

@@ -3,6 +3,13 @@ planner study in the README: horizon, knots, MPPI / CEM, gradient refinement, po
 
     python scripts/planner_study.py --boxes 100 --seed 0 --sampling update=mppi --sampling horizon=20 \
         [--controller observer_gain=0.3] [--prior carriage_omega=30] [--estimator oracle|learned] [--out DIR]
+    python scripts/planner_study.py --boxes 100 --seed 2 --sampling n_samples=32 \
+        --mixture default --mixture carriage_omega=30,slip_eps=0.02      # a mixture of priors
+
+`--mixture` (two or more) plans over a mixture of physics priors, one per setting
+(`ControllerConfig.prior_params` as a tuple, `planning.Mixture`), each candidate scored by its mean cost
+over them (`--sampling particle_risk=worst` for the worst). The episodes run batched with one host
+device per core, as `boxjax evaluate` runs them.
 
 Values are parsed as JSON (numbers, true / false, "strings" or bare words). Prints one JSON line: the
 evaluation summary (as `boxjax evaluate --json`) and the failed box indices.
@@ -14,7 +21,7 @@ import argparse
 import json
 import sys
 
-from boxjax import experiments
+from boxjax import batch, experiments
 from boxjax.config import DEFAULT
 from boxjax.controller import ControllerConfig
 from boxjax.prior import PriorParams
@@ -45,19 +52,35 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--prior", action="append", default=[], metavar="KEY=VALUE", help="a prior.PriorParams field"
     )
+    ap.add_argument(
+        "--mixture",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE[,KEY=VALUE...]|default",
+        help="one prior setting of a mixture of priors (give two or more)",
+    )
     ap.add_argument("--out", help="write evaluation.json and boxes.npz here (for `boxjax rotate --replay`)")
     args = ap.parse_args(argv)
+    if args.prior and args.mixture:
+        ap.error("--prior sets the one prior; with --mixture give every setting as a --mixture")
     try:
         fields = _pairs(args.controller, "controller")
+        variant = fields.get("variant", "slip")
         prior_params = None
         if args.prior:
-            prior_params = PriorParams(variant=fields.get("variant", "slip"), **_pairs(args.prior, "prior"))
+            prior_params = PriorParams(variant=variant, **_pairs(args.prior, "prior"))
+        if args.mixture:
+            prior_params = tuple(
+                PriorParams(variant=variant, **({} if m == "default" else _pairs(m.split(","), "mixture")))
+                for m in args.mixture
+            )
         ctrl = ControllerConfig(
             sampling=SamplingOptions(**_pairs(args.sampling, "sampling")), prior_params=prior_params, **fields
         )
     except (TypeError, ValueError) as e:
         sys.stderr.write(f"planner_study: error: {e}\n")
         raise SystemExit(2) from e
+    batch.use_host_devices()  # one host device per core, as `boxjax evaluate`
     ev = experiments.evaluate(
         DEFAULT, args.boxes, args.hazardous, args.seed, estimator=args.estimator, ctrl=ctrl
     )

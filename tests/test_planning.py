@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from boxjax import massdist, planner, planning, prior
 from boxjax import sampling_planner as sp
@@ -94,3 +95,67 @@ def test_ensemble_of_priors_particles_follow_their_members():
     np.testing.assert_allclose(margins[1], own_margins, atol=1e-6)
     assert not np.allclose(margins[0], margins[1])  # the centre of mass differs between A and C
     np.testing.assert_allclose(mean, parts.mean(0), atol=1e-6)
+
+
+def test_mixture_of_prior_settings_particles_follow_their_members():
+    """A Mixture of priors with different static settings (not stackable into an Ensemble): one particle
+    per member, each the member's own rollout and margins; the plain slot is their mean."""
+    a = _model("A")
+    slow = a.__class__(**{**a.__dict__, "params": prior.PriorParams(carriage_omega=30.0)})
+    mix = planning.Mixture((a, slow))
+    assert planning.n_particles(mix) == 2
+    acts = jnp.tile(jnp.array([[0.05, -0.05, 0.01, 0.0]]), (2, 1))  # a carriage step: the settings differ
+
+    @jax.jit
+    def run(mix):
+        parts = planning.rollout_particles(mix, jax.random.PRNGKey(0), OBS.window, OBS.belt_speed, acts)
+        own = [m.rollout_sequence(OBS.window, OBS.belt_speed, acts) for m in mix.members]
+        return (
+            parts,
+            planning.particle_margins(mix, parts),
+            mix.rollout_sequence(OBS.window, OBS.belt_speed, acts),
+            own,
+        )
+
+    parts, margins, mean, own = run(mix)
+    assert parts.shape == (2, 2, 5) and margins.shape == (2, 2)
+    for i in range(2):
+        np.testing.assert_array_equal(parts[i], own[i])
+    assert not np.allclose(parts[0], parts[1])  # the slower carriage response predicts another state
+    np.testing.assert_allclose(mean, parts.mean(0), atol=1e-7)
+    with pytest.raises(ValueError, match="non-empty tuple"):
+        planning.Mixture(())
+
+
+def test_a_mixture_of_one_setting_twice_plans_as_that_setting_alone():
+    o = sp.SamplingOptions(n_samples=8, horizon=3, gradient_steps=0)
+    a = _model("A")
+    key = jax.random.PRNGKey(3)
+    nominal = sp.initial_nominal(CFG, o)
+    plain = sp.make_sampling_planner(CFG, o)(key, a, OBS.window, OBS.belt_speed, OBS.target_yaw, nominal)
+    mixed = sp.make_sampling_planner(CFG, o)(
+        key, planning.Mixture((a, a)), OBS.window, OBS.belt_speed, OBS.target_yaw, nominal
+    )
+    np.testing.assert_allclose(mixed[0], plain[0], atol=1e-6)
+    np.testing.assert_allclose(mixed[1].cost, plain[1].cost, rtol=1e-6)
+
+
+def test_controller_builds_a_mixture_of_priors_and_refuses_what_cannot_use_one():
+    from boxjax import controller, experiments
+
+    mix = (prior.PriorParams(), prior.PriorParams(carriage_omega=30.0, slip_eps=0.02))
+    ctrl = ControllerConfig(prior_params=mix)
+    model = controller.planning_model(CFG, ctrl, massdist.named("A", CFG.box))
+    assert isinstance(model, planning.Mixture) and [m.params for m in model.members] == list(mix)
+    # an evaluation file's settings rebuild the same controller
+    st = experiments.settings("oracle", ctrl, 0, "gaussian")
+    assert experiments.controller_from_settings(st) == ctrl
+    for bad, match in [
+        (dict(prior_params=mix[:1]), "at least two"),
+        (dict(prior_params=mix, planner="paper"), "sampling planner"),
+        (dict(prior_params=mix, belief="ensemble"), "belief='mean'|sampling planner"),
+        (dict(prior_params=(mix[0], "fast")), "tuple of them"),
+        (dict(prior_params=(mix[0], prior.PriorParams(variant="paper"))), "variant"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            ControllerConfig(**bad)
