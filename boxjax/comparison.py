@@ -16,7 +16,7 @@ wall time divided by its episodes) where the controller allows it. The black box
 batched too (`blackbox_episodes`, `batch_black_boxes=True`: every episode its own copy of the model,
 adapted online on its own data, the same schedule and keys as `blackbox_episode`), but by default run
 one at a time: on a CPU their planning is bound by W's matrix products, so a batch is no faster
-(`benchmarks/blackbox_episodes.py`, README "Black-box baseline W").
+(`benchmarks/blackbox_episodes.py`, README "Batched episodes").
 
 `generalisation_gap`: one-step errors of W (trained on A), of PETS (when given) and of the physics prior
 (true masses) on fresh episodes of A and of C (`baseline_train.collect`, another seed than W's data).
