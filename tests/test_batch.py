@@ -209,3 +209,6 @@ def test_batched_black_box_rows_are_the_one_at_a_time_rows():
         for k in ("outcome", "steps", "adaptations", "method"):
             assert r[k] == s[k], k
     assert [r["adaptations"] for r in rows] == [2, 2]
+    observer = controller.ControllerConfig(observer_gain=0.3)
+    with pytest.raises(ValueError, match="black boxes' episodes: the drift observer"):
+        comparison.compare(cfg, ("A",), 1, ("blackbox",), model=w, ctrl=observer, batch_black_boxes=True)
