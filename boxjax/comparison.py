@@ -150,7 +150,13 @@ def blackbox_episodes(
         adapter=adapter,
         max_steps=max_steps,
     )
-    per_episode = (time.perf_counter() - t0) / max(len(jobs), 1)
+    return _batched_rows(method, jobs, results, time.perf_counter() - t0)
+
+
+def _batched_rows(method: str, jobs, results, wall: float) -> list[dict]:
+    """Rows of a batch of episodes, in the order of `jobs`, each marked `batched`, its `wall_s` the
+    batch's wall time over its episodes."""
+    per_episode = wall / max(len(jobs), 1)
     return [
         {**_row(method, name, seed, res.summary), "wall_s": per_episode, "batched": True}
         for (name, seed), res in zip(jobs, results, strict=True)
@@ -203,11 +209,7 @@ def prior_episodes(
         slots=slots,
         progress=None if progress is None else (lambda b, res: progress()),
     )
-    per_episode = (time.perf_counter() - t0) / max(len(jobs), 1)
-    rows = []
-    for (name, seed), res in zip(jobs, results, strict=True):
-        rows.append({**_row("prior", name, seed, res.summary), "wall_s": per_episode, "batched": True})
-    return rows
+    return _batched_rows("prior", jobs, results, time.perf_counter() - t0)
 
 
 def _row(method: str, name: str, seed: int, s: dict) -> dict:

@@ -234,27 +234,23 @@ def planning_model(
 
         force_map = default_force_map(cfg)
 
-    def on(dist, params=None):
-        return prior.make_prior(
-            massdist.voxel_masses(dist, cfg.box),
-            force_map,
-            cfg.box,
-            cfg.gripper,
-            params or ctrl.prior_settings(),
-        )
+    settings = ctrl.prior_settings()
 
-    if isinstance(ctrl.prior_settings(), tuple):
-        base = on(belief, ctrl.prior_settings()[0])
-        return planning.Mixture(tuple(dataclasses.replace(base, params=p) for p in ctrl.prior_settings()))
+    def on(dist, params):
+        return prior.make_prior(massdist.voxel_masses(dist, cfg.box), force_map, cfg.box, cfg.gripper, params)
+
+    if isinstance(settings, tuple):  # the per-box quantities do not depend on the settings: built once
+        base = on(belief, settings[0])
+        return planning.Mixture(tuple(dataclasses.replace(base, params=p) for p in settings))
     if ctrl.belief == "mean":
-        return on(belief)
+        return on(belief, settings)
     members = (est or {}).get("members")
     if not members:
         raise ValueError(
             "belief='ensemble' needs an estimator that gives ensemble members (the learned H); "
             "the oracle's one true distribution has none"
         )
-    return planning.Ensemble(planning.stack([on(massdist.validate(m, cfg.box)) for m in members]))
+    return planning.Ensemble(planning.stack([on(massdist.validate(m, cfg.box), settings) for m in members]))
 
 
 def first_window(s) -> list:
