@@ -20,6 +20,10 @@ Every command but `reproduce` (the shipped weights are the default gripper's) ta
 (box, gripper and task parameters). With --json the last line printed is one JSON object (the summary);
 everything else goes before it. Bad input, and an option that the chosen planner, model or estimator
 does not use (`cli_args`), exit with status 2 and one line saying what is wrong.
+
+The commands that compile JAX programs keep them on disk between runs (`run_info.use_compilation_cache`:
+~/.cache/boxjax/jax, or the folder in BOXJAX_COMPILATION_CACHE, "off" to disable), so a second
+`evaluate` or `rotate` skips the planners' compilation.
 """
 
 from __future__ import annotations
@@ -29,6 +33,10 @@ import sys
 
 from boxjax import cli_args, cli_box, cli_episodes, cli_reproduce, cli_train
 from boxjax.cli_args import emit
+
+# Commands that do not turn the compilation cache on here: nothing worth keeping to compile (box,
+# config), or it does so itself after its own checks (reproduce: a refused DIR costs no JAX start-up).
+_NO_COMPILATION = frozenset({"box", "config", "reproduce"})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,6 +53,10 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         cli_args.resolve(args)
+        if args.command not in _NO_COMPILATION:
+            from boxjax import run_info
+
+            run_info.use_compilation_cache()
         summary = args.func(args)
     except (ValueError, FileNotFoundError) as e:  # bad input (incl. CheckpointError): say what, no traceback
         sys.stderr.write(f"boxjax {args.command}: error: {e}\n")

@@ -72,14 +72,22 @@ def test_batched_episodes_decide_and_end_as_the_one_box_path(episodes):
     assert len(u.plan_ms) == u.summary["steps"] - 45 - 1  # one planner call per MPC step (first untimed)
 
 
-def test_a_box_waiting_for_a_slot_runs_when_one_frees():
+def test_a_box_waiting_for_a_slot_runs_when_one_frees_longest_first():
     dists = [massdist.named(n, cfg.box) for n in ("uniform", "A", "B")]
     keys = [jax.random.PRNGKey(j) for j in range(3)]
-    res = batch.run_episodes(cfg, dists, keys, ctrl=CTRL, slots=1, max_steps=50)
-    for r in res:  # 45 exploration steps, then 5 MPC steps each, one box at a time
+    given = batch.run_episodes(cfg, dists, keys, ctrl=CTRL, slots=1, max_steps=50, order="given")
+    for r in given:  # 45 exploration steps, then 5 MPC steps each, one box at a time
         assert r.summary["steps"] == 50 and r.summary["failed_reason"] == "step_cap"
         assert len(r.plan_ms) == 4
-    assert res[0].summary["wall_s"] < res[1].summary["wall_s"] < res[2].summary["wall_s"]
+    assert given[0].summary["wall_s"] < given[1].summary["wall_s"] < given[2].summary["wall_s"]
+    # By default the box whose centre of mass lies farthest off-centre (B, then A, then uniform) gets
+    # the slot first; when a box runs does not change its episode.
+    lengths = [batch.expected_length(cfg, d) for d in dists]
+    assert lengths[0] < 1e-6 < lengths[1] < lengths[2]
+    res = batch.run_episodes(cfg, dists, keys, ctrl=CTRL, slots=1, max_steps=50)
+    assert res[2].summary["wall_s"] < res[1].summary["wall_s"] < res[0].summary["wall_s"]
+    for r, g in zip(res, given, strict=True):
+        assert np.array_equal(r.trace.actions, g.trace.actions) and np.array_equal(r.trace.s, g.trace.s)
 
 
 def test_replay_re_simulates_a_batched_episode_exactly(episodes):
@@ -105,6 +113,8 @@ def test_unsupported_controllers_and_bad_arguments_are_named():
         batch.run_episodes(cfg, d, k * 2)
     with pytest.raises(ValueError, match="slots"):
         batch.run_episodes(cfg, d, k, slots=0)
+    with pytest.raises(ValueError, match="unknown order"):
+        batch.run_episodes(cfg, d, k, order="shortest_first")
     with pytest.raises(ValueError, match="slots"):
         experiments.evaluate(cfg, 1, batched=False, slots=4, progress=False)
 

@@ -148,3 +148,22 @@ def test_help_shows_the_defaults(capsys):
         main(["rotate", "--help"])
     out = capsys.readouterr().out
     assert "(default 50)" in out and "--animate" in out and "--config" in out and "--box" in out
+
+
+def test_commands_that_compile_keep_the_compilation_cache(capsys, monkeypatch, tmp_path):
+    import jax
+
+    from boxjax.run_info import CACHE_ENV
+
+    saved = (jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs)
+    try:
+        monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+        assert main(["config"]) == 0  # compiles nothing: the cache is left as it was
+        assert jax.config.jax_compilation_cache_dir == saved[0]
+        assert main(["simulate", "--distribution", "uniform", "--steps", "3", "--json"]) == 0
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache")
+        assert (tmp_path / "cache").is_dir()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", saved[0])
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", saved[1])
+    capsys.readouterr()
