@@ -84,6 +84,11 @@ centre of mass; angular acceleration tau / I_zz (planar); second-order Taylor st
   The "paper" variant also ignores the cone's anisotropy.
 
 Velocities and the yaw are continuous (not wrapped) in the predicted state: yaw_next = yaw_t + delta.
+
+Modules: this one holds the settings (`PriorParams`), the per-box model (`make_prior`), the step of
+either variant and the rollouts; where the belts touch the box and how hard (contact elements, normal
+loads, the tipping margin) is `prior_contact`, the friction law `prior_friction`. Their public names are
+re-exported here.
 """
 
 from __future__ import annotations
@@ -91,7 +96,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -101,17 +105,23 @@ from boxjax import calibrate, geometry
 from boxjax.calibrate import ForceMap, cross2, perp, rot2
 from boxjax.config import BoxConfig, GripperConfig
 from boxjax.massdist import mass_properties_from_masses
+from boxjax.prior_contact import (  # noqa: F401 (re-exported: the prior's public API)
+    Contacts,
+    contact_fractions,
+    normal_loads,
+    polygon_contacts,
+    solve3,
+    stability_margin,
+    voxel_contacts,
+)
+from boxjax.prior_friction import dissipation, friction_force  # noqa: F401 (re-exported)
 
 MIN_WINDOW = 3  # states s_{t-2}, s_{t-1}, s_t: second-order velocities and the pre-action acceleration
 VARIANTS = ("slip", "paper")
 NORMALS = ("pressure", "columns")
 CONTACTS = ("voxels", "polygon")
 CONES = ("gripper", "elliptic", "pyramidal")
-_TINY = 1e-12
-_MIN_WIDTH = 1e-3  # m, smallest projected footprint width (keeps the overlap formula well conditioned)
 _BOX, _GRIPPER = BoxConfig(), GripperConfig()
-_MAX_VERTICES = 8  # vertices of the intersection of two rectangles, at most
-_NO_TENSION_ITERATIONS = 4  # active-set passes of `normal_loads` (a box on 2 belts settles in 1-2)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,202 +296,7 @@ def initial_window(s0, length: int = MIN_WINDOW) -> jax.Array:
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Small pure helpers.
-
-
-def _solve3(a, b):
-    """x with a x = b for a (3, 3) by the adjugate (elementwise: cheap under vmap); det guarded."""
-    r0, r1, r2 = a[0], a[1], a[2]
-    c0, c1, c2 = jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)
-    det = jnp.dot(r0, c0)
-    det = jnp.where(jnp.abs(det) > _TINY, det, jnp.where(det < 0, -_TINY, _TINY))
-    return (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
-
-
-def _sum_uniform_cdf(t, a, b):
-    """CDF at t of U(-a/2, a/2) + U(-b/2, b/2) (a trapezoid): the fraction of a rectangle's area whose
-    projection on an axis lies below t, for projected widths a, b (a rotated rectangle dx x dy projects
-    with a = |sin| dx, b = |cos| dy on y). Widths are floored at 1 mm."""
-    a = jnp.maximum(a, _MIN_WIDTH)
-    b = jnp.maximum(b, _MIN_WIDTH)
-    s = 0.5 * (a + b)
-    d = 0.5 * jnp.abs(a - b)
-    t = jnp.clip(t, -s, s)  # keeps magnitudes small: no float32 cancellation far from the support
-    r2 = lambda u: jnp.square(jnp.maximum(u, 0.0))  # noqa: E731
-    return jnp.clip((r2(t + s) - r2(t + d) - r2(t - d) + r2(t - s)) / (2 * a * b), 0.0, 1.0)
-
-
-def contact_fractions(s, box: BoxConfig, gripper: GripperConfig) -> jax.Array:
-    """(2, nx, ny) fraction in [0, 1] of each bottom voxel's footprint resting on belt 1 / belt 2.
-
-    A soft version of `geometry.contact_masks` (same index layout): the voxel's rotated footprint is
-    projected on y (exact trapezoid overlap with the belt strip |y - P_i| <= width / 2) and on x (overlap
-    with |x| <= length / 2); the area fraction is the product of the two.
-    """
-    dx, dy, _ = box.voxel_size
-    centres = geometry.box_to_world_xy(s, jnp.asarray(geometry.bottom_voxel_centres_xy(box)))
-    c, sn = jnp.abs(jnp.cos(s[geometry.YAW])), jnp.abs(jnp.sin(s[geometry.YAW]))
-    half_l, half_w = gripper.belt_length / 2, gripper.belt_width / 2
-    fx = _sum_uniform_cdf(half_l - centres[..., 0], c * dx, sn * dy) - _sum_uniform_cdf(
-        -half_l - centres[..., 0], c * dx, sn * dy
-    )
-
-    def over_belt(p):
-        lo, hi = p - half_w - centres[..., 1], p + half_w - centres[..., 1]
-        return _sum_uniform_cdf(hi, sn * dx, c * dy) - _sum_uniform_cdf(lo, sn * dx, c * dy)
-
-    return jnp.stack([fx * over_belt(s[geometry.P1]), fx * over_belt(s[geometry.P2])])
-
-
-class Contacts(NamedTuple):
-    """Contact elements between the belts and the box at one instant ("slip" variant).
-
-    offsets: (2, E, 2) m, planar positions relative to the centre of mass, box-frame axes, of the E
-      elements of belt 1 and belt 2 (rigidly attached to the box for the duration of a step).
-    weights: (2, E) >= 0: how much of each element touches its belt (area fraction for voxels, 0 or 1 for
-      polygon vertices); an element with weight 0 carries no load.
-    """
-
-    offsets: jax.Array
-    weights: jax.Array
-
-
-def voxel_contacts(model: PriorModel, s) -> Contacts:
-    """The bottom voxels, weighted by their footprint's overlap with each belt (`contact_fractions`)."""
-    fr = contact_fractions(s, model.box, model.gripper).reshape(2, -1)
-    off = jnp.broadcast_to(model.offsets.reshape(1, -1, 2), (2, fr.shape[1], 2))
-    return Contacts(off, fr)
-
-
-def polygon_contacts(model: PriorModel, s) -> Contacts:
-    """The vertices of each belt's contact polygon: box footprint intersected with the belt's top face.
-
-    A rigid box resting on a flat belt touches it, in the rigid limit, at the vertices of the overlap
-    polygon (this is also what MuJoCo's box-box collision reports). For two rectangles the vertices are
-    among: the footprint's 4 corners inside the belt, the belt's 4 corners strictly inside the footprint,
-    and the crossings of the footprint's 4 edges with the belt's 4 edge lines (strictly inside the
-    footprint edge, within the belt edge), so a vertex on an edge is counted once: 24 candidates per belt,
-    the valid ones with weight 1, compacted to the 8 slots a rectangle-rectangle intersection can need.
-    """
-    hx, hy, _ = model.box.half_size
-    corners_box = jnp.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]], jnp.float32)
-    c = geometry.box_to_world_xy(s, corners_box)  # (4, 2) footprint corners, world
-    d = jnp.roll(c, -1, axis=0) - c  # edges c_k -> c_{k+1}
-    rot_t = rot2(s[geometry.YAW]).T  # world -> box axes
-    half_w, half_l = model.gripper.belt_width / 2, model.gripper.belt_length / 2
-    tol = 1e-7
-
-    def belt(p):
-        lo, hi = p - half_w, p + half_w
-        in_x = (c[:, 0] >= -half_l - tol) & (c[:, 0] <= half_l + tol)
-        in_b = in_x & (c[:, 1] >= lo - tol) & (c[:, 1] <= hi + tol)
-        cb = jnp.array([[-half_l, lo], [half_l, lo], [half_l, hi], [-half_l, hi]], jnp.float32)
-        cb_box = (cb - s[geometry.X : geometry.Y + 1]) @ rot_t.T
-        in_a = (jnp.abs(cb_box[:, 0]) < hx - 1e-6) & (jnp.abs(cb_box[:, 1]) < hy - 1e-6)
-        # Footprint edges against the belt's lines y = lo, y = hi (|x| <= L/2) and x = -+L/2 (lo <= y <= hi).
-        level = jnp.array([lo, hi, -half_l, half_l])
-        axis = jnp.array([1, 1, 0, 0])
-        start = c[None, :, :]  # (1, 4, 2)
-        dd = d[None, :, :]
-        # (4 lines, 4 edges):
-        num = level[:, None] - jnp.where(axis[:, None] == 1, start[..., 1], start[..., 0])
-        den = jnp.where(axis[:, None] == 1, dd[..., 1], dd[..., 0])
-        ok = jnp.abs(den) > 1e-9
-        t = num / jnp.where(ok, den, 1.0)
-        pts = start + jnp.clip(t, 0.0, 1.0)[..., None] * dd  # (4, 4, 2)
-        other = jnp.where(axis[:, None] == 1, pts[..., 0], pts[..., 1])
-        other_lo = jnp.where(axis == 1, -half_l, lo)[:, None] - tol
-        other_hi = jnp.where(axis == 1, half_l, hi)[:, None] + tol
-        valid = ok & (t > 1e-5) & (t < 1 - 1e-5) & (other >= other_lo) & (other <= other_hi)
-        points = jnp.concatenate([c, cb, pts.reshape(-1, 2)])  # (24, 2)
-        weights = jnp.concatenate([in_b, in_a, valid.reshape(-1)]).astype(jnp.float32)
-        # The intersection of two rectangles has at most 8 vertices: keep 8 slots (the valid ones
-        # first), so the friction sums run over 8 elements per belt instead of 24.
-        _, keep = jax.lax.top_k(weights, _MAX_VERTICES)
-        return points[keep], weights[keep]
-
-    pts1, w1 = belt(s[geometry.P1])
-    pts2, w2 = belt(s[geometry.P2])
-    world = jnp.stack([pts1, pts2])  # (2, 24, 2)
-    box_xy = (world - s[geometry.X : geometry.Y + 1]) @ rot_t.T  # R^T (p - r_geom), as row vectors
-    return Contacts(box_xy - model.com[:2], jnp.stack([w1, w2]).astype(jnp.float32))
-
-
-def stability_margin(model: PriorModel, s, n_directions: int = 32) -> jax.Array:
-    """() m: how far the centre of mass lies inside the support polygon (negative: outside, the box tips).
-
-    The support polygon is the convex hull of both belts' contact polygons (`polygon_contacts`); a rigid
-    box at rest stays up while the vertical through its centre of mass meets it (the static tipping
-    criterion). The signed distance to the hull's boundary is min over unit directions n of the hull's
-    support function max_q n . q (q: contact vertices relative to the centre of mass), evaluated on
-    `n_directions` evenly spaced directions: exact on the hull's edge normals, so the sampled value
-    over-estimates the distance by at most R (1 - cos(pi / n_directions)) (< 1 mm for a 0.25 m reach and
-    32 directions). No contact at all: -1 m.
-
-    Why the planner needs it: with both belts spread out to their stops, a turned box rests on two small
-    corner patches at opposite ends of a diagonal; a box whose centre of mass lies off that diagonal
-    tips into the gap between the belts (measured in the simulator: box C at yaw 0.4 rad, belts at
-    +-0.20 m, margin 3 mm, tipped). The planar prior cannot see this; the margin can.
-    """
-    c = polygon_contacts(model, jnp.asarray(s, jnp.float32))
-    ang = jnp.arange(n_directions, dtype=jnp.float32) * (2 * math.pi / n_directions)
-    dirs = jnp.stack([jnp.cos(ang), jnp.sin(ang)], axis=-1)  # (D, 2), box axes (the hull rotates with it)
-    proj = c.offsets.reshape(-1, 2) @ dirs.T  # (2E, D)
-    proj = jnp.where(c.weights.reshape(-1, 1) > 0, proj, -1.0)
-    return jnp.min(jnp.max(proj, axis=0))
-
-
-def normal_loads(model: PriorModel, contacts: Contacts, friction=None) -> jax.Array:
-    """(2, E) N, normal force on each contact element from belt 1 / belt 2.
-
-    friction: (2,) N, the total belt friction on the box in box axes (None: zero). Friction acts at the
-    belt surface, h = com_z + half height below the centre of mass, so it tilts the box's load: the
-    moment balance about the centre of mass becomes sum q N = -h F (a box dragged towards -y presses
-    harder on its +y side). Without it, a carriage pulled out from under a box is predicted to drag the
-    box along; measured in the simulator (box with the centre of mass 7.5 cm over belt 1 and 5.6 cm above
-    its centre, belt 1 moved 8 cm outwards): the box moved 1.6 cm, the load-blind prior predicted 7.7.
-
-    "pressure": p(q) = a + b q_x + c q_y over the weighted contact elements (q relative to the centre of
-    mass), with sum = M g and zero moment about the centre of mass (a rigid box on an elastic belt
-    surface), without tension: elements where the pressure would be negative lift off and the rest is
-    solved again (active-set passes); if the centre of mass lies outside the support (no solution), the
-    negative values are clipped and the total renormalised to M g. Against MuJoCo, box C at rest: 17.8 /
-    60.7 N on belt 1 / belt 2, simulator 18.0 / 60.5 N. "columns": g x column mass x area fraction (the
-    paper's V_i; voxel contacts only). No contact at all: all zero.
-    """
-    g = model.gripper.gravity
-    w = contacts.weights
-    if model.params.normal == "columns":
-        return g * model.column_mass.reshape(1, -1) * w
-    q = contacts.offsets  # (2, E, 2); frame-independent: the moments vanish in any frame
-    phi = jnp.concatenate([jnp.ones_like(w)[..., None], q], axis=-1)  # (2, E, 3)
-    mg = model.mass * g
-    if friction is None:
-        rhs = jnp.stack([mg, 0.0 * mg, 0.0 * mg])
-    else:
-        h = model.com[2] + model.box.half_size[2]
-        rhs = jnp.concatenate([mg[None], -h * friction])
-
-    def solve(active):
-        """The linear pressure over the active elements with sum M g and zero moment."""
-        wa = w * active
-        a = jnp.einsum("be,bek,bel->kl", wa, phi, phi)
-        # Ridge: a contact set on one line is degenerate. (dtype: stays float32 under jax_enable_x64.)
-        a = a + (1e-6 * a[0, 0] + _TINY) * jnp.eye(3, dtype=a.dtype)
-        return _solve3(a, rhs)
-
-    # No tension (a box does not stick to its belts): where the linear pressure comes out negative the
-    # element lifts off, and the pressure is solved again over the elements still pressing (active-set
-    # iterations, as for a rigid footing on an elastic foundation). Merely clipping the negative values
-    # breaks the moment balance: box C at rest (centre of mass 7 cm towards belt 2) was left with 0.19 N m
-    # of moment about its centre of mass and 18.5 N on belt 1 (now 17.8 N, MuJoCo 18.0 N).
-    coef = solve(jnp.ones_like(w))
-    for _ in range(_NO_TENSION_ITERATIONS):
-        coef = solve((phi @ coef > 0).astype(w.dtype))
-    n = w * jnp.maximum(phi @ coef, 0.0)
-    tot = jnp.sum(n)
-    ok = tot > 1e-9
-    return jnp.where(ok, n * (mg / jnp.where(ok, tot, 1.0)), 0.0)
+# The step's belt motion.
 
 
 def _belt_profiles(model: PriorModel, s_t, belt_speed, action):
@@ -522,124 +337,6 @@ def _geom_state(model: PriorModel, p_next, rc, theta):
 # The two variants.
 
 
-def _slip(u, belt_velocity, off):
-    """(..., 2, E, 2) slip of each belt under each contact element: u_belt_i - (v + omega perp(o)),
-    for body velocities u (..., 3) and element offsets off (2, E, 2) (conveyor axes)."""
-    u = u[..., None, None, :]
-    vq = u[..., :2] + u[..., 2:3] * perp(off)
-    return belt_velocity[:, None, :] - vq
-
-
-_DIAG = 1.0 / math.sqrt(2.0)  # the pyramid's diagonal directions e1 = (1, 1) / sqrt 2, e2 = (1, -1) / sqrt 2
-
-
-def _diag(v):
-    """(..., 2) components of planar vectors v along the diagonals e1, e2 (Q v, Q = Q^T = Q^-1)."""
-    return jnp.stack([_DIAG * (v[..., 0] + v[..., 1]), _DIAG * (v[..., 0] - v[..., 1])], axis=-1)
-
-
-def dissipation(u, belt_velocity, off, loads, mu: float, eps: float, cone: str = "elliptic"):
-    """(...) the friction's convex potential (W) for body velocities u (..., 3), whose negative gradient
-    w.r.t. u is the generalised friction force, summed over the contact elements:
-
-    "elliptic": mu N sqrt(|s|^2 + eps^2), isotropic regularised Coulomb on the slip s;
-    "pyramidal": (mu N / sqrt 2) (sqrt((s . e1)^2 + eps^2) + sqrt((s . e2)^2 + eps^2)) with the diagonals
-    e1 = (1, 1) / sqrt 2, e2 = (1, -1) / sqrt 2. MuJoCo's pyramidal cone (condim 3: edges n +- mu t1,
-    n +- mu t2; the contact frame's tangents are the conveyor's y and x axes for the flat belt contacts)
-    lets a contact transmit |f_x| + |f_y| <= mu N, a diamond. A sliding contact dissipates the most it can,
-    sup over the diamond of f . s = mu N max(|s_x|, |s_y|) = (mu N / sqrt 2) (|s . e1| + |s . e2|): two 1-D
-    Coulomb frictions of coefficient mu / sqrt 2 along the diagonals, regularised like the isotropic law.
-    The force is then mu N along the axis of the larger slip component (the diamond's vertex), and
-    mu N / sqrt 2 along a diagonal slip.
-    """
-    s = _slip(u, belt_velocity, off)
-    if cone == "elliptic":
-        per = jnp.sqrt(jnp.sum(s * s, -1) + eps * eps)
-    else:
-        z = _diag(s)
-        per = _DIAG * jnp.sum(jnp.sqrt(z * z + eps * eps), -1)
-    return jnp.sum(mu * loads * per, axis=(-2, -1))
-
-
-def friction_force(u, belt_velocity, off, loads, mu: float, eps: float, cone: str = "elliptic"):
-    """Belt friction on the box ("slip" variant): generalised force, its Jacobian, per-belt forces, and
-    the quadratic majoriser of `dissipation` at u.
-
-    Per contact element Q on belt i: slip s = u_belt_i - (v + omega perp(o_Q)) = u_belt_i - G u with
-    G = [I2 | perp(o_Q)]; force f = W s = -d dissipation / d s with W a 2 x 2 weight; D = d f / d s; the
-    generalised force is sum G^T f and its Jacobian -sum G^T D G = -sum [[D, D p], [p^T D, p^T D p]]
-    with p = perp(o_Q) (analytic: cheaper than jacfwd under vmap, and tested against it). Majoriser
-    (IRLS): every term of `dissipation` is a concave function of a square, so dissipation(u') <= const +
-    sum (u_belt - G u')^T W (u_belt - G u') / 2 with W frozen at u, i.e. the quadratic u'^T A u' / 2 -
-    b^T u' with A = sum G^T W G, b = sum G^T W u_belt = force + A u.
-      "elliptic": W = w I, w = mu N / sqrt(|s|^2 + eps^2); D = w I - w s s^T / (|s|^2 + eps^2).
-      "pyramidal": W and D are diagonal along e1, e2: with z_j = s . e_j, w_j = (mu N / sqrt 2) /
-      sqrt(z_j^2 + eps^2) and d_j = w_j eps^2 / (z_j^2 + eps^2), W = Q diag(w) Q, D = Q diag(d) Q (Q the
-      reflection onto the diagonals, Q = Q^T = Q^-1), so the sums run in the diagonal axes (with
-      p' = Q p) and are turned back once.
-
-    Args:
-      u: (3,) body velocity (vx, vy, omega) of the centre of mass (m/s, rad/s).
-      belt_velocity: (2, 2) surface velocity (x, y) of belt 1 and belt 2 (m/s).
-      off: (2, E, 2) m, contact element positions relative to the centre of mass (conveyor axes).
-      loads: (2, E) N, normal force of belt 1 / belt 2 on each element.
-      mu: friction coefficient; eps: m/s regularisation; cone: "elliptic" or "pyramidal" (`dissipation`).
-    Returns:
-      (force (3,) = (Fx N, Fy N, tau N m), jac (3, 3) d force / d u, per_belt (2, 2) N, A (3, 3), b (3,)).
-    """
-    p = perp(off)  # (2, E, 2)
-    if cone == "elliptic":
-        slip = _slip(u, belt_velocity, off)  # (2, E, 2)
-        sx, sy = slip[..., 0], slip[..., 1]
-        r = jax.lax.rsqrt(sx * sx + sy * sy + eps * eps)  # (2, E)
-        w = mu * loads * r
-        r3 = w * r * r
-        px, py = p[..., 0], p[..., 1]
-        dxx, dyy, dxy = w - r3 * sx * sx, w - r3 * sy * sy, -r3 * sx * sy
-        dpx, dpy = dxx * px + dxy * py, dxy * px + dyy * py
-        fx, fy = w * sx, w * sy
-        # One reduction over the contacts for every sum (much faster on CPU than a dozen small ones).
-        terms = [fx, fy, px * fx + py * fy]  # force, torque (p . f = o x f)
-        terms += [dxx, dyy, dxy, dpx, dpy, px * dpx + py * dpy]  # friction Jacobian blocks
-        terms += [w, w * px, w * py, w * (px * px + py * py)]  # majoriser
-        per = jnp.sum(jnp.stack(terms, axis=-1), axis=1)  # (2 belts, 13)
-        t = jnp.sum(per, axis=0)
-        force = t[0:3]
-        sxx, syy, sxy, spx, spy, spp = t[3], t[4], t[5], t[6], t[7], t[8]
-        jac = -jnp.array([[sxx, sxy, spx], [sxy, syy, spy], [spx, spy, spp]])
-        wt, wpx, wpy, wpp = t[9], t[10], t[11], t[12]
-        a_mm = jnp.array([[wt, 0.0, wpx], [0.0, wt, wpy], [wpx, wpy, wpp]])
-        per_belt = per[:, 0:2]
-    else:
-        # Everything in the diagonal axes: z = Q s = Q u_belt - Q v - omega p', p' = Q p.
-        pd = _diag(p)  # (2, E, 2)
-        z = _diag(belt_velocity)[:, None, :] - _diag(u[:2]) - u[2] * pd
-        q = jax.lax.rsqrt(z * z + eps * eps)  # (2, E, 2)
-        w = (_DIAG * mu) * loads[..., None] * q
-        dd = w * (eps * eps) * q * q
-        f = w * z
-        dp, wp = dd * pd, w * pd
-        terms = [f, jnp.sum(pd * f, -1, keepdims=True)]  # force (diagonal axes), torque
-        terms += [dd, dp, jnp.sum(dp * pd, -1, keepdims=True)]  # friction Jacobian blocks
-        terms += [w, wp, jnp.sum(wp * pd, -1, keepdims=True)]  # majoriser
-        per = jnp.sum(jnp.concatenate(terms, axis=-1), axis=1)  # (2 belts, 13)
-        t = jnp.sum(per, axis=0)
-
-        def back(s1, s2, s1p, s2p, spp):
-            """G^T Q diag(s) Q G sums from their diagonal-axes parts: the 3 x 3 block matrix."""
-            h = 0.5 * (s1 + s2)
-            k = 0.5 * (s1 - s2)
-            cx, cy = _DIAG * (s1p + s2p), _DIAG * (s1p - s2p)
-            return jnp.array([[h, k, cx], [k, h, cy], [cx, cy, spp]])
-
-        force = jnp.stack([_DIAG * (t[0] + t[1]), _DIAG * (t[0] - t[1]), t[2]])
-        jac = -back(*(t[3:8]))
-        a_mm = back(*(t[8:13]))
-        per_belt = _diag(per[:, 0:2])
-    b_mm = force + a_mm @ u  # = sum G^T W u_belt, since force = sum G^T W (u_belt - G u)
-    return force, jac, per_belt, a_mm, b_mm
-
-
 def _explain_slip(model: PriorModel, window, belt_speed, action, velocity=None, friction=None):
     gr, prm = model.gripper, model.params
     dt = gr.control_dt
@@ -668,8 +365,8 @@ def _explain_slip(model: PriorModel, window, belt_speed, action, velocity=None, 
 
         def iterate(uc, _):
             force, jac, fb, a_mm, b_mm = friction_force(uc, ub, off, loads, mu, eps, cone)
-            u_newton = uc - _solve3(mmat - h * jac, mdiag * (uc - u0) - h * force)
-            u_mm = _solve3(mmat + h * a_mm, mdiag * u0 + h * b_mm)
+            u_newton = uc - solve3(mmat - h * jac, mdiag * (uc - u0) - h * force)
+            u_mm = solve3(mmat + h * a_mm, mdiag * u0 + h * b_mm)
             cand = jnp.stack([u_newton, u_mm])
             phi = objectives(cand)
             return jnp.where(phi[0] < phi[1], u_newton, u_mm), fb
