@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import platform
 import subprocess
+import sys
 from pathlib import Path
 
 _REPO = Path(__file__).resolve().parent.parent
@@ -19,7 +20,8 @@ def use_compilation_cache(path: str | None = None) -> str | None:
     of the compilation (the planners' compile dominates a --quick run). The folder: `path`, else the
     environment variable BOXJAX_COMPILATION_CACHE ("off" or "" disables it), else
     $XDG_CACHE_HOME/boxjax/jax (default ~/.cache/boxjax/jax). Set it before the first compilation; a process
-    that compiled already may keep running without it. Returns the folder, or None when disabled."""
+    that compiled already may keep running without it. Returns the folder, or None when disabled or when
+    the folder cannot be made (a line on stderr says why; the command runs on without the cache)."""
     import jax
 
     if path is None:
@@ -29,7 +31,11 @@ def use_compilation_cache(path: str | None = None) -> str | None:
             path = os.path.join(base, "boxjax", "jax")
     if path in ("", "off"):
         return None
-    os.makedirs(path, exist_ok=True)
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as e:  # a read-only home, a file in the way: run without the cache, say so
+        sys.stderr.write(f"boxjax: not keeping compiled programs ({path}: {e}); set {CACHE_ENV}\n")
+        return None
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     return path

@@ -163,6 +163,10 @@ def test_commands_that_compile_keep_the_compilation_cache(capsys, monkeypatch, t
         assert main(["simulate", "--distribution", "uniform", "--steps", "3", "--json"]) == 0
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache")
         assert (tmp_path / "cache").is_dir()
+        (tmp_path / "file").write_text("")  # a folder that cannot be made: the command runs without it
+        monkeypatch.setenv(CACHE_ENV, str(tmp_path / "file" / "cache"))
+        assert main(["simulate", "--distribution", "uniform", "--steps", "3", "--json"]) == 0
+        assert "not keeping compiled programs" in capsys.readouterr().err
     finally:
         jax.config.update("jax_compilation_cache_dir", saved[0])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", saved[1])
