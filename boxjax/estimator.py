@@ -113,7 +113,6 @@ from boxjax.estimator_net import (  # noqa: F401 (re-exported)
     _check_traj,
     _dataset_arrays,
     _forward,
-    _get,
     _select_members,
     _standardise,
     features,
