@@ -11,7 +11,8 @@ error (mm, what the safety barrier sees), beside constant velocity; and `carriag
 follows a net carriage move over the horizon, true against predicted (the planner's balance lever).
 
     python benchmarks/closed_loop_error.py [--boxes 64] [--seed 7] [--horizon 10] [--stride 3] \
-        [--param carriage_omega=30,100 --param slip_eps=0.002,0.02] [--traces FILE.npz] [--out FILE.json]
+        [--param carriage_omega=30,100 --param slip_eps=0.002,0.02] [--traces FILE.npz] [--out FILE.json] \
+        [--residual FILE.npz] [--policy-residual FILE.npz]
 
 `--param NAME=V1,V2,...` (repeatable) spans a grid over `prior.PriorParams` fields (all combinations);
 `--traces` keeps the episodes (written when absent, read when present). Prints one JSON line.
@@ -40,18 +41,22 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from _util import emit_to, machine  # noqa: E402
 
-from boxjax import experiments, geometry, massdist, prior  # noqa: E402
+from boxjax import experiments, geometry, massdist, prior, residual  # noqa: E402
 from boxjax.config import DEFAULT  # noqa: E402
 from boxjax.fileio import atomic_path  # noqa: E402
 
 
-def collect(n_boxes: int, seed: int) -> dict:
-    """Closed-loop oracle episodes of the default controller: per box s (T+1, 5), belt_speed, actions,
-    masses and the exploration length, flattened into one npz-able dict."""
+def collect(n_boxes: int, seed: int, policy_residual: str | None = None) -> dict:
+    """Closed-loop oracle episodes of the default controller (planning with the learned residual
+    `policy_residual` when given): per box s (T+1, 5), belt_speed, actions, masses and the exploration
+    length, flattened into one npz-able dict."""
+    from boxjax.controller import ControllerConfig
+
     cfg = DEFAULT
     boxes = experiments.make_boxes(cfg, n_boxes, 0, seed)
     truths = [boxes.dist(j) for j in range(n_boxes)]
-    res = batch.run_episodes(cfg, truths, list(boxes.keys), estimator="oracle")
+    ctrl = ControllerConfig(residual=policy_residual)
+    res = batch.run_episodes(cfg, truths, list(boxes.keys), estimator="oracle", ctrl=ctrl)
     out = {"success": np.asarray([r.summary["success"] for r in res])}
     for j, r in enumerate(res):
         out[f"s_{j}"], out[f"bs_{j}"], out[f"a_{j}"] = r.trace.s, r.trace.belt_speed, r.trace.actions
@@ -75,11 +80,14 @@ def cases(tr: dict, horizon: int, stride: int) -> dict:
     return {k: np.asarray(v, np.float32) for k, v in cols.items()}
 
 
-def predict(c: dict, params: dict, chunk: int = 2048) -> np.ndarray:
+def predict(c: dict, params: dict, chunk: int = 2048, corrected=None) -> np.ndarray:
+    """The prior's predictions of every case; `corrected` = (net, ResidualConfig): with a learned residual."""
     cfg = DEFAULT
 
     def one(masses, window, belt_speed, actions):
         model = prior.make_prior(masses, None, cfg.box, cfg.gripper, **params)
+        if corrected is not None:
+            model = residual.Residual(model, *corrected)
         return model.rollout_sequence(window, belt_speed, actions)
 
     fn = jax.jit(jax.vmap(one))
@@ -152,6 +160,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--param", action="append", default=[])
     ap.add_argument("--traces", help="episodes npz: read if it exists, else written")
     ap.add_argument("--out", help="also write the JSON here (atomically)")
+    ap.add_argument("--residual", help="also the default prior with this learned residual (boxjax.residual)")
+    ap.add_argument("--policy-residual", help="the episodes' controller plans with this residual")
     args = ap.parse_args(argv)
     default = prior.PriorParams()
     grid = [{}] + [g for g in _grid(args.param) if dataclasses.replace(default, **g) != default]
@@ -159,7 +169,7 @@ def main(argv=None) -> dict:
     if args.traces and os.path.exists(args.traces):
         tr = dict(np.load(args.traces))
     else:
-        tr = collect(args.boxes, args.seed)
+        tr = collect(args.boxes, args.seed, args.policy_residual)
         if args.traces:
             with atomic_path(args.traces, suffix=".npz") as tmp:
                 np.savez(tmp, **tr)
@@ -188,6 +198,17 @@ def main(argv=None) -> dict:
             }
         )
         print(json.dumps(out["prior"][-1]), file=sys.stderr, flush=True)
+    if args.residual:
+        net, rcfg, _ = residual.load(args.residual)
+        t1 = time.perf_counter()
+        pred = predict(c, {}, corrected=(net, rcfg))
+        out["residual"] = {
+            "file": args.residual,
+            **errors(pred, c["truth"]),
+            "carriage_follow": carriage_follow(c, pred),
+            "s": time.perf_counter() - t1,
+        }
+        print(json.dumps(out["residual"]), file=sys.stderr, flush=True)
     out["wall_s"] = time.perf_counter() - t0
     emit_to(out, args.out)
     return out

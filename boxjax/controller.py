@@ -57,6 +57,9 @@ class ControllerConfig:
     # plans over a mixture of priors (`planning.Mixture`: one particle per setting, scored by
     # `SamplingOptions.particle_risk`; the sampling planner and belief="mean" only).
     prior_params: Any = None
+    # A learned residual on the physics prior (`boxjax.residual`): the path of its checkpoint, or None
+    # (the prior alone). The "slip" prior with belief="mean" and one prior setting only.
+    residual: str | None = None
 
     def __post_init__(self):
         if self.planner not in PLANNERS:
@@ -87,6 +90,20 @@ class ControllerConfig:
                 raise ValueError(
                     "a mixture of priors (prior_params as a tuple) needs at least two settings, the "
                     "sampling planner and belief='mean'"
+                )
+
+        if self.residual is not None:
+            settings = self.prior_settings()
+            if (
+                self.variant != "slip"
+                or isinstance(settings, tuple)
+                or not settings.carry_velocity
+                or self.belief != "mean"
+                or self.planner == "simulator"
+            ):
+                raise ValueError(
+                    "a residual on the prior needs the 'slip' variant with carry_velocity, one prior "
+                    "setting, belief='mean' and a planner that plans with the model (not 'simulator')"
                 )
 
     def prior_settings(self) -> prior.PriorParams | tuple:
@@ -243,6 +260,11 @@ def planning_model(
         base = on(belief, settings[0])
         return planning.Mixture(tuple(dataclasses.replace(base, params=p) for p in settings))
     if ctrl.belief == "mean":
+        if ctrl.residual is not None:
+            from boxjax import residual
+
+            net, rcfg, _ = residual.load_cached(ctrl.residual)
+            return residual.Residual(on(belief, settings), net, rcfg)
         return on(belief, settings)
     members = (est or {}).get("members")
     if not members:

@@ -489,7 +489,7 @@ def next_belt_speed(model: PriorModel, belt_speed, action) -> jax.Array:
     return belt_speed + jnp.clip(sp - belt_speed, -dv, dv)
 
 
-def rollout_sequence(model: PriorModel, window, belt_speed, actions) -> jax.Array:
+def rollout_sequence(model: PriorModel, window, belt_speed, actions, correction=None) -> jax.Array:
     """(H, 5) predicted states for the action sequence `actions` (H, 4). Each step feeds the predicted
     state back through the window, and the belt speeds follow the setpoints at <= belt_accel_limit
     (`next_belt_speed`). The first step takes its velocities from the window's finite differences, as
@@ -499,11 +499,19 @@ def rollout_sequence(model: PriorModel, window, belt_speed, actions) -> jax.Arra
     carriage step drags the box during its fast 20-30 ms move and the box then slides to rest on the
     stopped belt. Re-deriving the velocity from positions turns each pulse's mean into momentum the box
     does not have, and the drag ratchets up step after step (box with the centre of mass 7.5 cm over
-    belt 1, belt 1 pulled 8 cm outwards: 6.9 cm of predicted drag, 1.6 cm in the simulator)."""
+    belt 1, belt 1 pulled 8 cm outwards: 6.9 cm of predicted drag, 1.6 cm in the simulator).
+
+    correction ("slip" with `carry_velocity` only): None, or a pure function
+    `correction(w, b, a, u, s, info) -> (s', velocity')` applied after every predicted step (window w,
+    belt speed b, action a and start velocity u of the step, the prior's next state s and its `explain`
+    info, whose "velocity" the next step starts from): how a learned residual (`boxjax.residual`)
+    corrects the prior in place."""
     window = jnp.asarray(window, jnp.float32)[-MIN_WINDOW:]
     belt_speed = jnp.asarray(belt_speed, jnp.float32)
     actions = jnp.asarray(actions, jnp.float32)
     if model.params.variant != "slip" or not model.params.carry_velocity:
+        if correction is not None:
+            raise ValueError("a correction of the prior needs the 'slip' variant with carry_velocity")
 
         def step(carry, a):
             w, b = carry
@@ -516,8 +524,11 @@ def rollout_sequence(model: PriorModel, window, belt_speed, actions) -> jax.Arra
     def step_carried(carry, a):
         w, b, u, f = carry
         s, info = _explain_slip(model, w, b, a, u, f)
+        u_next = info["velocity"]
+        if correction is not None:
+            s, u_next = correction(w, b, a, u, s, info)
         w = jnp.concatenate([w[1:], s[None]])
-        return (w, next_belt_speed(model, b, a), info["velocity"], info["friction"]), s
+        return (w, next_belt_speed(model, b, a), u_next, info["friction"]), s
 
     kin = calibrate.window_kinematics(window, model.com[:2], model.gripper.control_dt)
     u0 = jnp.concatenate([kin.v, kin.omega[None]])
