@@ -66,18 +66,12 @@ def collect(n_boxes: int, seed: int, policy_residual: str | None = None) -> dict
 
 
 def cases(tr: dict, horizon: int, stride: int) -> dict:
-    """Every `stride`-th MPC step with `horizon` steps left: window (C, 3, 5), belt_speed (C, 2),
-    actions (C, H, 4), masses (C, nx, ny, nz), truth (C, H, 5)."""
-    cols: dict[str, list] = {"window": [], "belt_speed": [], "actions": [], "masses": [], "truth": []}
-    for j in range(len(tr["success"])):
-        s, bs, a = tr[f"s_{j}"], tr[f"bs_{j}"], tr[f"a_{j}"]
-        for t in range(max(int(tr[f"nx_{j}"]), prior.MIN_WINDOW - 1), len(a) - horizon + 1, stride):
-            cols["window"].append(s[t - prior.MIN_WINDOW + 1 : t + 1])
-            cols["belt_speed"].append(bs[t])
-            cols["actions"].append(a[t : t + horizon])
-            cols["masses"].append(tr[f"m_{j}"])
-            cols["truth"].append(s[t + 1 : t + horizon + 1])
-    return {k: np.asarray(v, np.float32) for k, v in cols.items()}
+    """Every `stride`-th MPC step with `horizon` steps left (`residual.segments`), each with its box's voxel
+    masses: window (C, 3, 5), belt_speed (C, 2), actions (C, H, 4), masses (C, nx, ny, nz),
+    truth (C, H, 5)."""
+    seg = residual.segments(tr, horizon, stride, "exploration")
+    seg["masses"] = seg["masses"][seg.pop("box")]
+    return seg
 
 
 def predict(c: dict, params: dict, chunk: int = 2048, corrected=None) -> np.ndarray:
