@@ -23,6 +23,11 @@ The model slot. A model is a pytree with
 from the same finite differences as for observed states). A model that knows nothing about the centre of
 mass (a black box) returns a large constant margin (`NO_MARGIN`), so margin-based barriers are inert.
 
+A model that knows the box's centre of mass also exposes `model.planar_com() -> (2,) m` (box frame,
+x and y); `planar_com(model)` reads it and gives None for a model that knows none (W, PETS). The
+sampling planner's turn-end term needs it (`sampling_planner.turn_end_excess`) and is left out for such
+a model.
+
 Particle models (several predicted trajectories per action sequence). A model may also expose
 
     model.n_particles -> int (static: a pytree meta field or derived from array shapes)
@@ -96,6 +101,14 @@ class Model(Protocol):
     def stability_margin(self, s) -> jax.Array: ...
 
 
+def planar_com(model) -> jax.Array | None:
+    """(2,) m: the model's centre of mass in the box frame (x, y); None for a model that knows none (a
+    black box)."""
+    f = getattr(model, "planar_com", None)
+    c = None if f is None else f()
+    return None if c is None else jnp.asarray(c, jnp.float32)
+
+
 class ParticleModel(Model, Protocol):
     """A model of the slot with several particles per action sequence (see the module docstring)."""
 
@@ -148,6 +161,9 @@ class DriftCorrected:
 
     def stability_margin(self, s) -> jax.Array:
         return self.model.stability_margin(s)
+
+    def planar_com(self) -> jax.Array | None:
+        return planar_com(self.model)
 
     # A particle model stays one under the correction (every particle moved by the same drift).
     @property
@@ -290,6 +306,12 @@ class Ensemble:
         """() m, the members' mean margin at `s`."""
         return jnp.mean(jax.vmap(lambda m: m.stability_margin(s))(self.members))
 
+    def planar_com(self) -> jax.Array | None:
+        """(2,) m, the members' mean centre of mass (None: the members know none)."""
+        if getattr(self.members, "planar_com", None) is None:
+            return None
+        return jnp.mean(jax.vmap(planar_com)(self.members), axis=0)
+
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["members"], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
@@ -325,3 +347,8 @@ class Mixture:
     def stability_margin(self, s) -> jax.Array:
         """() m, the members' mean margin at `s`."""
         return jnp.mean(jnp.stack([m.stability_margin(s) for m in self.members]))
+
+    def planar_com(self) -> jax.Array | None:
+        """(2,) m, the mean centre of mass of the members that know one (None: none does)."""
+        known = [c for c in (planar_com(m) for m in self.members) if c is not None]
+        return jnp.mean(jnp.stack(known), axis=0) if known else None

@@ -211,6 +211,10 @@ class PriorModel:
         """() m, the centre of mass's distance inside the support polygon; see `stability_margin`."""
         return stability_margin(self, s)
 
+    def planar_com(self) -> jax.Array:
+        """(2,) m, the centre of mass in the box frame (x, y)."""
+        return self.com[:2]
+
 
 def make_prior(
     masses,

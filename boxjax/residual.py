@@ -143,6 +143,9 @@ class Residual:
     def stability_margin(self, s) -> jax.Array:
         return self.prior.stability_margin(s)
 
+    def planar_com(self) -> jax.Array:
+        return self.prior.planar_com()
+
 
 # ----------------------------------------------------------------------------------------------------------
 # Training.

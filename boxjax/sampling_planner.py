@@ -32,7 +32,13 @@ Score (lower is better), summed over the predicted states s_1..s_H (paper's obje
               turned box rests on two corner patches; box C, whose centre of mass lies off that diagonal,
               tipped into the gap in 5 of 20 episodes without this term (oracle, seeds 0-19, the support
               barrier alone), in none with it;
-  * effort:   w_effort * (dp / max_position_step)^2 (sideways moves drag the box; use them when needed).
+  * effort:   w_effort * (dp / max_position_step)^2 (sideways moves drag the box; use them when needed);
+  * turn end: on the last predicted state only, w_reach * relu(turn_end_excess / limit)^2: how far beyond
+              the carriages' reach the geometric centre will be once the box has turned to the target
+              about its centre of mass (`turn_end_excess`; needs a model that knows the centre of mass).
+              A terminal cost that sees the carriage stops beyond the horizon: a box with its centre of
+              mass far along its length must be dragged sideways while it turns, or it stalls with both
+              carriages at their stops.
 The best rollout's (R1, R2) at its worst state are reported in PlanInfo so the Pareto view of the paper
 stays available.
 
@@ -93,6 +99,11 @@ class SamplingOptions:
     support_margin: float = 0.06  # m, each belt keeps at least this much of its width under the box
     tip_margin: float = 0.03  # m, the centre of mass stays this far inside the support polygon
     w_effort: float = 0.01
+    # Turn-end reach: w_reach * relu(turn_end_excess / balance_limit)^2 on the last predicted state, where
+    # the geometric centre will be once the box has turned to the target about its centre of mass
+    # (`turn_end_excess`). 0: off (the default until the full test suite has run with it on); 100 was
+    # chosen over 30 and 300 on development seeds (README, "Random boxes").
+    w_reach: float = 0.0
     # Carriage rate: w_position_rate * ((dp_k - dp_{k-1}) / max_position_step)^2 over the sequence, dp_{-1}
     # the carriages' last observed step (window). 0: off. See `position_rate_cost`.
     w_position_rate: float = 0.0
@@ -142,6 +153,8 @@ class SamplingOptions:
             raise ValueError("need temperature > 0 and min_sigma_fraction in (0, 1]")
         if self.n_knots is not None and not 2 <= self.n_knots <= self.horizon:
             raise ValueError(f"n_knots must be in 2..horizon ({self.horizon}) or None, got {self.n_knots}")
+        if self.w_reach < 0:
+            raise ValueError(f"w_reach must be >= 0, got {self.w_reach}")
         if min(self.speed_sigma, self.position_sigma) < 0 or not 0 < self.safe_fraction <= 1:
             raise ValueError("sigmas must be >= 0 and safe_fraction in (0, 1]")
 
@@ -219,14 +232,37 @@ def support_deficit(s, cfg: Config, margin: float) -> jax.Array:
     return margin - jnp.minimum(over1, over2)
 
 
+def turn_end_excess(s, com_xy, target_yaw, cfg: Config, y_margin: float) -> jax.Array:
+    """() m: how far outside the carriages' reach (`planner.y_excess`) the box's geometric centre will lie
+    when the box, now in state s (5,), has turned to `target_yaw` about its centre of mass (box frame
+    (x, y) `com_xy`, m).
+
+    Why: the belts push only along x, so a turn leaves the centre of mass's y where it is, and only a
+    carriage's sideways drag moves it. The geometric centre then ends at y_end = y_com - (sin(target) c_x +
+    cos(target) c_y): a box with its centre of mass 12 cm along its length ends 12 cm to the side of it.
+    If y_end is out of the belts' reach the turn cannot be finished balanced; the box has to be dragged
+    sideways first, which takes longer than a planning horizon, so the horizon's states alone cannot see
+    it (README, "Random boxes": the step-cap failures)."""
+    cx, cy = com_xy[0], com_xy[1]
+    yaw = s[geometry.YAW]
+    y_com = s[geometry.Y] + jnp.sin(yaw) * cx + jnp.cos(yaw) * cy
+    y_end = y_com - (jnp.sin(target_yaw) * cx + jnp.cos(target_yaw) * cy)
+    return planner.y_excess(s.at[geometry.Y].set(y_end), cfg, y_margin)
+
+
 def rollout_cost(model, states, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
     """() cost of one predicted rollout (see module docstring); `model` (the model slot,
-    `planning.Model`) gives the stability margin for the tipping barrier."""
-    return cost_given_margins(states, jax.vmap(model.stability_margin)(states), actions, target_yaw, cfg, o)
+    `planning.Model`) gives the stability margin for the tipping barrier and the centre of mass for the
+    turn-end term."""
+    margins = jax.vmap(model.stability_margin)(states)
+    return cost_given_margins(states, margins, actions, target_yaw, cfg, o, planning.planar_com(model))
 
 
-def cost_given_margins(states, margins, actions, target_yaw, cfg: Config, o: SamplingOptions) -> jax.Array:
-    """() cost of one predicted rollout (H, 5) whose stability margins (H,) m are given."""
+def cost_given_margins(
+    states, margins, actions, target_yaw, cfg: Config, o: SamplingOptions, com_xy=None
+) -> jax.Array:
+    """() cost of one predicted rollout (H, 5) whose stability margins (H,) m are given; `com_xy` (2,) m,
+    the box-frame centre of mass for the turn-end term (None: a model that knows none; no such term)."""
     lim = cfg.task.balance_limit
     yaw_err = states[:, geometry.YAW] - target_yaw
     bal = jax.vmap(geometry.balance_error)(states) / lim
@@ -244,7 +280,11 @@ def cost_given_margins(states, margins, actions, target_yaw, cfg: Config, o: Sam
     else:
         pose = yaw_err**2
     per_step = o.w_yaw * pose + o.w_balance * bal**2 + o.w_barrier * barrier + o.w_effort * effort
-    return jnp.sum(per_step)
+    total = jnp.sum(per_step)
+    if o.w_reach > 0 and com_xy is not None:
+        end = turn_end_excess(states[-1], com_xy, target_yaw, cfg, o.y_margin)
+        total = total + o.w_reach * relu2(end / lim)
+    return total
 
 
 def position_rate_cost(seq, window, cfg: Config, o: SamplingOptions) -> jax.Array:
@@ -291,8 +331,8 @@ def particle_cost(model, key, window, belt_speed, target_yaw, seq, cfg: Config, 
     """(mean states (H, 5), aggregated cost ()) of ONE sequence (H, 4) under a particle model."""
     parts = planning.rollout_particles(model, key, window, belt_speed, seq)  # (P, H, 5)
     margins = planning.particle_margins(model, parts)  # (P, H)
-    costs = jax.vmap(cost_given_margins, in_axes=(0, 0, None, None, None, None))(
-        parts, margins, seq, target_yaw, cfg, o
+    costs = jax.vmap(cost_given_margins, in_axes=(0, 0, None, None, None, None, None))(
+        parts, margins, seq, target_yaw, cfg, o, planning.planar_com(model)
     )
     costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
     return jnp.mean(parts, axis=0), planning.aggregate(costs, o.particle_risk, o.particle_risk_k)

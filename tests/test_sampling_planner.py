@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import geometry, massdist, prior
+from boxjax import baseline, geometry, massdist, planner, planning, prior
 from boxjax import sampling_planner as sp
 from boxjax.config import DEFAULT
 
@@ -215,3 +215,65 @@ def test_pose_cost_l1_and_quadratic_hand_computed():
     assert e / np.sqrt(e**2 + d**2) > 4 * (2 * e)  # slopes at 5 degrees: L1 0.93, quadratic 0.17
     with pytest.raises(ValueError, match="pose_cost"):
         sp.SamplingOptions(pose_cost="cubic")
+
+
+def _long_box():
+    """Mass in the last three of the eight voxel columns along x: centre of mass 12.5 cm along the length
+    (label-safe: not all of it in the outer quarter)."""
+    occ = np.zeros(CFG.box.grid, np.float32)
+    occ[5:] = 1.0
+    return massdist.MassDistribution(jnp.asarray(occ), jnp.float32(4.0))
+
+
+def test_turn_end_excess_hand_computed_and_invariant_under_a_turn_about_the_centre_of_mass():
+    """A centre of mass 12 cm along the length, box at y = 0, yaw 0: turned by pi/2 about it, the
+    geometric centre ends at y = -12 cm, 6 cm beyond the -7 cm + 1 cm margin reach. The same box
+    already turned part of the way about its centre of mass gives the same end; without an offset the
+    end is where the box is."""
+    com = jnp.array([0.12, 0.0])
+    s = jnp.array([-0.10, 0.10, 0.0, 0.0, 0.0], jnp.float32)
+    target = jnp.float32(np.pi / 2)
+    np.testing.assert_allclose(float(sp.turn_end_excess(s, com, target, CFG, 0.01)), 0.06, atol=1e-6)
+    for th in (0.3, 0.9, 1.4):  # y_com = 0 stays put: y = -(sin th * 0.12)
+        turned = s.at[geometry.YAW].set(th).at[geometry.Y].set(-np.sin(th) * 0.12)
+        np.testing.assert_allclose(float(sp.turn_end_excess(turned, com, target, CFG, 0.01)), 0.06, atol=1e-6)
+    off = s.at[geometry.Y].set(0.03)
+    np.testing.assert_allclose(
+        float(sp.turn_end_excess(off, jnp.zeros(2), target, CFG, 0.01)),
+        float(planner.y_excess(off, CFG, 0.01)),
+        atol=1e-7,
+    )
+
+
+def test_turn_end_term_adds_its_barrier_and_needs_a_centre_of_mass():
+    """w_reach * relu(excess / limit)^2 on the last state, with the model's own centre of mass (the prior
+    and every wrapper of it pass it on); 0 for a box whose turn ends in reach, and no term at all for a
+    model that knows no centre of mass (W)."""
+    lim = CFG.task.balance_limit
+    model = prior.make_prior(massdist.voxel_masses(_long_box(), CFG.box), None, CFG.box, G)
+    com = np.asarray(massdist.mass_properties(_long_box(), CFG.box).com[:2])
+    np.testing.assert_allclose(np.asarray(planning.planar_com(model)), com, atol=1e-6)
+    for wrapped in (
+        planning.DriftCorrected(model, jnp.zeros(3)),
+        planning.Mixture((model, model)),
+        planning.Ensemble(planning.stack([model, model])),
+    ):
+        np.testing.assert_allclose(np.asarray(planning.planar_com(wrapped)), com, atol=1e-6)
+    acts = jnp.zeros((2, 4))
+    states = jnp.stack([S0, S0])
+    o0 = sp.SamplingOptions(horizon=2, w_reach=0.0)
+    o1 = sp.SamplingOptions(horizon=2, w_reach=50.0)
+    excess = float(sp.turn_end_excess(S0, jnp.asarray(com), jnp.float32(np.pi / 2), CFG, o1.y_margin))
+    assert excess > 0.05
+    c0 = float(sp.rollout_cost(model, states, acts, np.pi / 2, CFG, o0))
+    c1 = float(sp.rollout_cost(model, states, acts, np.pi / 2, CFG, o1))
+    np.testing.assert_allclose(c1 - c0, 50.0 * (excess / lim) ** 2, rtol=1e-4)
+    uniform = _model("uniform")  # centre of mass near the middle: the turn ends in reach
+    assert float(sp.rollout_cost(uniform, states, acts, np.pi / 2, CFG, o1)) == pytest.approx(
+        float(sp.rollout_cost(uniform, states, acts, np.pi / 2, CFG, o0))
+    )
+    w = baseline.init_model(jax.random.PRNGKey(0), baseline.BaselineConfig(hidden=(8,)), G)
+    assert planning.planar_com(w) is None
+    assert float(sp.rollout_cost(w, states, acts, np.pi / 2, CFG, o1)) == float(
+        sp.rollout_cost(w, states, acts, np.pi / 2, CFG, o0)
+    )

@@ -139,6 +139,25 @@ def test_uniform_box_turns_quarter_turn_without_drift(env):
     assert trace.balance_error.max() < 0.01
 
 
+def test_a_belts_only_turn_swings_the_box_about_a_pivot_near_its_centre_of_mass(env):
+    """The premise of the sampling planner's turn-end term (`sampling_planner.turn_end_excess`): belts
+    push along x only, so while they turn a box whose centre of mass lies 12.5 cm along its length, the
+    geometric centre swings sideways and the centre of mass's y stays nearly put (MuJoCo's contact
+    dynamics, no carriage move)."""
+    occ = np.zeros(CFG.box.grid, np.float32)
+    occ[5:] = 1.0
+    dist = massdist.MassDistribution(occ, np.float32(4.0))
+    cx, cy = np.asarray(massdist.mass_properties(dist, CFG.box).com[:2])
+    state = env.reset(KEY, dist)
+    state, trace = run_episode(env, state, naive_policy(0.15), KEY, 15)
+    s = trace.s
+    y, yaw = s[:, 3], s[:, 4]
+    y_com = y + np.sin(yaw) * cx + np.cos(yaw) * cy
+    assert np.degrees(yaw[-1]) > 15.0
+    assert abs(y[-1] - y[0]) > 0.03  # the geometric centre swings 3+ cm to the side ...
+    assert abs(y_com[-1] - y_com[0]) < 0.35 * abs(y[-1] - y[0])  # ... the centre of mass a third of that
+
+
 def test_naive_rotation_fails_on_hazardous_D(env):
     """D (all mass over one belt) cannot be turned by the non-adaptive policy; uniform can."""
     state = env.reset(KEY, massdist.named("D", CFG.box))
