@@ -29,8 +29,8 @@ from boxjax.config import DEFAULT
 
 # Sampling-planner settings timed (SamplingOptions overrides; "default" is the class default).
 SAMPLING_CONFIGS = {
-    "default": {},  # 64 x 10, L1 pose cost, 5 gradient steps
-    "turn_end": {"w_reach": 100.0},
+    "default": {},  # 64 x 10, L1 pose cost, 5 gradient steps, turn-end term
+    "no_turn_end": {"w_reach": 0.0},
     "no_gradient": {"gradient_steps": 0},
     "quadratic_pose_no_gradient": {"pose_cost": "quadratic", "gradient_steps": 0},
     "n256_no_gradient": {"n_samples": 256, "gradient_steps": 0},

@@ -101,9 +101,9 @@ class SamplingOptions:
     w_effort: float = 0.01
     # Turn-end reach: w_reach * relu(turn_end_excess / balance_limit)^2 on the last predicted state, where
     # the geometric centre will be once the box has turned to the target about its centre of mass
-    # (`turn_end_excess`). 0: off (the default until the full test suite has run with it on); 100 was
-    # chosen over 30 and 300 on development seeds (README, "Random boxes").
-    w_reach: float = 0.0
+    # (`turn_end_excess`). 0: off. 100 was chosen over 30 and 300 on development seeds (README, "Random
+    # boxes"); models without a centre of mass (W, PETS) get no term.
+    w_reach: float = 100.0
     # Carriage rate: w_position_rate * ((dp_k - dp_{k-1}) / max_position_step)^2 over the sequence, dp_{-1}
     # the carriages' last observed step (window). 0: off. See `position_rate_cost`.
     w_position_rate: float = 0.0
