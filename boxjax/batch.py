@@ -256,16 +256,29 @@ def run_episodes(
             progress(b, results[b])
 
     # 1. exploration: the fixed sequence for every box at once; a box that ends stops there
+    # (each box through its own `explore.Guarded`, as `run_episode` does)
     n_explore = np.zeros(B, np.int32)
-    if ctrl.explore:
-        for a in explore.exploration_actions(cfg):
-            live = ~sim.done & (sim.t < max_steps)
-            if not live.any():
-                break
-            sim.step(np.tile(np.asarray(a, np.float64), (B, 1)), live)
-            for b in np.flatnonzero(live):
-                rec[b].add(sim, b, a)
-            n_explore += live
+    guard_m = ctrl.explore_guard if model is None else None
+    guards = [explore.Guarded(cfg, guard_m) for _ in range(B)] if ctrl.explore else []
+    exploring = np.full(B, bool(guards))
+    while exploring.any():
+        acts, live = np.zeros((B, 4)), np.zeros(B, bool)
+        for b in np.flatnonzero(exploring):
+            a = (
+                None
+                if sim.done[b] or sim.t[b] >= max_steps
+                else guards[b].next(sim.s[b], sim.balance_error[b])
+            )
+            if a is None:
+                exploring[b] = False
+            else:
+                acts[b], live[b] = a, True
+        if not live.any():
+            break
+        sim.step(acts, live)
+        for b in np.flatnonzero(live):
+            rec[b].add(sim, b, acts[b])
+        n_explore += live
     lost = sim.done.copy()
 
     # 2.-3. belief and decision per box; 4. the models of the boxes to turn
@@ -275,7 +288,9 @@ def run_episodes(
         if lost[b]:
             finish(b, int(n_explore[b]), True)
             continue
-        if model is None:
+        if guards and guards[b].tripped:
+            decided[b] = ({}, None, guards[b].why())
+        elif model is None:
             decided[b] = controller.decide(cfg, truths[b], rec[b].exploration(), estimator)
         est, belief, why = decided[b]
         if why is not None or sim.t[b] >= max_steps:
@@ -378,23 +393,46 @@ def replay_episode(
     the hazard decision re-run on the exploration, the summary as the episode's own.
 
     Raises:
-      ValueError: the episode ends before its actions do (another box, key or config).
+      ValueError: the episode ends before its actions do, or its exploration is not the one the
+        controller's (guarded) exploration sends (another box, key or config).
     """
     t0 = time.perf_counter()
     key_reset, _ = jax.random.split(_as_key(key))
     sim = NativeBatch(cfg, [truth], [key_reset])
     rec = _Record(sim, 0)
     actions = np.asarray(actions, np.float64).reshape(-1, 4)
-    n_explore = min(len(explore.exploration_actions(cfg)), len(actions)) if ctrl.explore else 0
+    guard = explore.Guarded(cfg, ctrl.explore_guard) if ctrl.explore else None
+    exploring, n_explore, lost = guard is not None, 0, False
     decided: tuple = ({}, None, None)
-    lost = False
+
+    def exploration_over(recorded=None) -> bool:
+        # the guard is asked with the states the episode had, so it ends the exploration where it did
+        if not exploring:
+            return False
+        expected = None if sim.done[0] else guard.next(sim.s[0], sim.balance_error[0])
+        if expected is not None and recorded is not None and not np.allclose(expected, recorded):
+            raise ValueError(
+                f"recorded action {len(rec.actions)} {np.round(recorded, 4).tolist()} is not the "
+                f"exploration's {np.round(expected, 4).tolist()} (another box, key or config?)"
+            )
+        return expected is None
+
+    def decide() -> tuple:
+        if guard.tripped:
+            return ({}, None, guard.why())
+        return controller.decide(cfg, truth, rec.exploration(), estimator)
+
     for t, a in enumerate(actions):
         if sim.done[0]:
             raise ValueError(f"the episode ended at step {t}, before its {len(actions)} recorded actions did")
+        if exploration_over(a):
+            exploring = False
+            decided = decide()
         sim.step(a[None], np.ones(1, bool))
         rec.add(sim, 0, a)
-        if t + 1 == n_explore:
-            lost = bool(sim.done[0])
-            if not lost:
-                decided = controller.decide(cfg, truth, rec.exploration(), estimator)
+        n_explore += int(exploring)
+    if exploration_over():  # the actions ended with the exploration: lost, or refused
+        lost = bool(sim.done[0])
+        if not lost:
+            decided = decide()
     return _result(cfg, truth, sim, 0, rec, decided, n_explore, lost, time.perf_counter() - t0, estimator)

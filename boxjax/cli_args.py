@@ -178,6 +178,24 @@ def output_options(p: argparse.ArgumentParser, plot_help: str, animate: bool = T
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
 
 
+def guard_value(text: str) -> float:
+    """--explore-guard: a fraction of the balance limit in (0, 1), or "off" (0.0, which the controller
+    config reads as None)."""
+    if text.strip().lower() == "off":
+        return 0.0
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a fraction of the balance limit or 'off', got {text!r}"
+        ) from None
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected a fraction of the balance limit in (0, 1) or 'off', got {text!r}"
+        )
+    return value
+
+
 def planner_options(
     p: argparse.ArgumentParser,
     *used_by: Condition,
@@ -226,6 +244,16 @@ def planner_options(
         used_by=(*used_by, when("planner", "sampling", owner="the sampling planner")),
         check=at_least(0),
         help="Adam steps through the prior on the chosen sequence (default 5; 0: none)",
+    )
+    option(
+        p,
+        "--explore-guard",
+        type=guard_value,
+        default=0.875,
+        metavar="F|off",
+        used_by=used_by,
+        help="a box whose balance error passes this fraction of the balance limit during the fixed "
+        "exploration is re-centred and refused, not lost; off: the paper's fixed exploration",
     )
     option(
         p,

@@ -147,6 +147,7 @@ def _controller_config(args):
         planner=args.planner,
         sampling=sampling,
         belief=getattr(args, "belief", None) or "mean",
+        explore_guard=args.explore_guard or None,
     )
 
 

@@ -319,6 +319,8 @@ def animate_failures(ev: Evaluation, cfg: Config, out_dir, max_frames: int | Non
 
     if ev.actions is None:
         raise ValueError("this evaluation kept no actions: run it again to animate its failures")
+    # the controller the episodes ran with (its exploration guard decides what the replay expects)
+    ctrl = controller_from_settings(ev.summary) if "controller" in ev.summary else ControllerConfig()
     paths = []
     for row in ev.rows:
         failed = (
@@ -328,7 +330,7 @@ def animate_failures(ev: Evaluation, cfg: Config, out_dir, max_frames: int | Non
             continue
         j = row["index"]
         truth, key = ev.boxes.dist(j), jax.random.wrap_key_data(ev.boxes.keys[j])
-        trace = batch.replay_episode(cfg, truth, key, ev.actions[j]).trace
+        trace = batch.replay_episode(cfg, truth, key, ev.actions[j], ctrl=ctrl).trace
         os.makedirs(os.path.join(out_dir, "failures"), exist_ok=True)
         path = os.path.join(out_dir, "failures", f"box_{j}.gif")
         kw = {} if max_frames is None else {"max_frames": max_frames}
@@ -368,6 +370,7 @@ def load_actions(out_dir) -> list[np.ndarray] | None:
 def controller_from_settings(st: dict) -> ControllerConfig:
     """The ControllerConfig an evaluation ran with (its `settings(...)["controller"]`)."""
     c = dict(st["controller"])
+    c.setdefault("explore_guard", None)  # evaluations written before the guard explored without one
     if c.get("sampling") is not None:
         from boxjax.sampling_planner import SamplingOptions
 

@@ -139,7 +139,8 @@ def _applied(cfg: Config, actions):
         speed, p_target = carry
         ctrl, new_target, _, _ = core.command(cfg, a, speed, p_target)
         new_speed = jnp.clip(
-            speed + ctrl[:2] * cfg.gripper.control_dt, -cfg.gripper.belt_speed_limit,
+            speed + ctrl[:2] * cfg.gripper.control_dt,
+            -cfg.gripper.belt_speed_limit,
             cfg.gripper.belt_speed_limit,
         )
         applied = jnp.concatenate([new_speed, new_target - p_target])
@@ -228,3 +229,71 @@ __all__ = [
     "run",
     "trajectory",
 ]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The exploration guard: a box the fixed sequence itself is about to lose is refused, not lost.
+
+GUARD_STEPS = 20  # control steps of re-centring after the guard trips (1 s at 20 Hz)
+
+
+def recentre_action(cfg: Config, s) -> np.ndarray:
+    """(4,) belts stopped (speed setpoints 0) and both carriages stepped towards the box's geometric
+    centre by its balance error (at most one position step), so the belts' midline follows the box."""
+    s = np.asarray(s, np.float64)
+    bal = s[3] - 0.5 * (s[0] + s[1])
+    dp = float(np.clip(bal, -cfg.gripper.max_position_step, cfg.gripper.max_position_step))
+    return np.array([0.0, 0.0, dp, dp])
+
+
+class Guarded:
+    """The exploration of one box, step by step, with the guard (`guard`: a fraction of the task's balance
+    limit; None: the paper's fixed sequence whatever happens): while the balance error stays within
+    guard x limit the fixed sequence runs; once it exceeds that, `GUARD_STEPS` re-centring steps
+    (`recentre_action`) follow and the exploration ends `tripped` (the controller refuses the box: the
+    exploration has shown that the belts cannot keep it balanced on their own). `next(s, balance_error)`
+    gives the next action, or None when the exploration is over. Every path that explores
+    (`controller.run_episode`, `batch.run_episodes`, the replay) steps through this one object, so they
+    make the same decision."""
+
+    def __init__(self, cfg: Config, guard: float | None):
+        if guard is not None and not 0 < guard < 1:
+            raise ValueError(
+                f"the exploration guard must be a fraction of the balance limit in (0, 1), got {guard}"
+            )
+        self.cfg, self.guard = cfg, guard
+        self.threshold = None if guard is None else guard * cfg.task.balance_limit  # m
+        self.actions = exploration_actions(cfg)
+        self.k = 0  # fixed-sequence steps sent
+        self.recentring = -1  # re-centring steps left once tripped (-1: not tripped)
+        self.worst = 0.0  # m, the balance error that tripped the guard
+
+    @property
+    def tripped(self) -> bool:
+        return self.recentring >= 0
+
+    def next(self, s, balance_error) -> np.ndarray | None:
+        b = abs(float(balance_error))
+        if not self.tripped and self.threshold is not None and b > self.threshold:
+            self.recentring, self.worst = GUARD_STEPS, b
+        if self.tripped:
+            if self.recentring == 0:
+                return None
+            self.recentring -= 1
+            return recentre_action(self.cfg, s)
+        if self.k >= len(self.actions):
+            return None
+        self.k += 1
+        return self.actions[self.k - 1]
+
+    def why(self) -> str | None:
+        """The refusal's explanation (None: not tripped)."""
+        if not self.tripped:
+            return None
+        return (
+            f"refused during the exploration: after {self.k} of its {len(self.actions)} fixed steps the "
+            f"box's geometric centre was {100 * self.worst:.1f} cm off the belts' midline (guard "
+            f"{100 * self.threshold:.1f} cm, limit {100 * self.cfg.task.balance_limit:.1f} cm); the belts "
+            "stopped and the carriages re-centred under it. The fixed exploration cannot hold this box, "
+            "so neither its estimate nor a turn is attempted."
+        )

@@ -95,11 +95,60 @@ def test_a_box_lost_while_exploring_is_an_outcome_not_an_exception():
     def estimator(exploration):
         raise AssertionError("the estimator was called on a box lost while exploring")
 
-    res = run_episode(cfg, massdist.named("B", cfg.box), jax.random.PRNGKey(0), estimator=estimator)
+    paper = ControllerConfig(explore_guard=None)  # the paper's fixed exploration, no guard
+    res = run_episode(
+        cfg, massdist.named("B", cfg.box), jax.random.PRNGKey(0), estimator=estimator, ctrl=paper
+    )
     s = res.summary
     assert s["lost_exploring"] and not s["success"] and not s["aborted"]
     assert s["failed_reason"] == "unbalanced" and s["exploration_steps"] < 45
     assert res.belief is None
+
+
+def test_the_exploration_guard_refuses_a_box_the_fixed_sequence_would_lose():
+    """Box B under a 2 mm balance limit crosses it within the fixed exploration (above). With the guard
+    (the default) the balance error passing 0.875 x 2 mm stops the sequence: the belts stop, the
+    carriages follow the box, and the episode is a refusal that says why, on the one-box path, the
+    batched path and the replay of its recorded actions alike; the estimator is never asked."""
+    from boxjax import batch, explore
+
+    cfg = CFG.replace(task=TaskConfig(balance_limit=0.002))
+
+    def estimator(exploration):
+        raise AssertionError("the estimator was called on a box the guard refused")
+
+    truth, key = massdist.named("B", cfg.box), jax.random.PRNGKey(0)
+    one = run_episode(cfg, truth, key, estimator=estimator)
+    s = one.summary
+    assert s["aborted"] and not s["lost_exploring"] and not s["success"]
+    assert "refused during the exploration" in s["abort_reason"] and "0.2 cm" in s["abort_reason"]
+    bal = np.abs(one.trace.balance_error)
+    tripped = int(np.argmax(bal > 0.875 * 0.002))  # the first state past the guard
+    assert 0 < tripped < 45 and bal.max() <= 0.002
+    assert s["exploration_steps"] == tripped + explore.GUARD_STEPS
+    # the re-centring steps: belts stopped, both carriages stepped alike towards the box
+    rec = one.trace.actions[tripped:]
+    assert np.all(rec[:, :2] == 0) and np.all(rec[:, 2] == rec[:, 3])
+    # the same decision batched and replayed
+    (b,) = batch.run_episodes(cfg, [truth], [key], estimator=estimator)
+    for k in ("aborted", "abort_reason", "exploration_steps", "lost_exploring", "steps"):
+        assert b.summary[k] == s[k], k
+    again = batch.replay_episode(cfg, truth, key, one.trace.actions, estimator=estimator)
+    for k in ("aborted", "abort_reason", "exploration_steps", "lost_exploring", "steps"):
+        assert again.summary[k] == s[k], k
+    other = one.trace.actions.copy()
+    other[tripped, 2] += 0.001  # not the re-centring step the guard sends
+    with pytest.raises(ValueError, match="exploration's"):
+        batch.replay_episode(cfg, truth, key, other, estimator=estimator)
+
+
+def test_the_exploration_guard_is_a_fraction_of_the_limit():
+    with pytest.raises(ValueError, match="explore_guard"):
+        ControllerConfig(explore_guard=1.5)
+    with pytest.raises(ValueError, match="fraction"):
+        from boxjax import explore
+
+        explore.Guarded(CFG, 0.0)
 
 
 def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path, capsys):
@@ -171,6 +220,14 @@ def test_bad_input_exits_2_naming_the_problem(argv, message, capsys):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("value", ["1.5", "0", "lots"])
+def test_a_bad_exploration_guard_is_refused_by_argparse(value, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", "--boxes", "1", "--explore-guard", value])
+    assert e.value.code == 2
+    assert "--explore-guard" in capsys.readouterr().err
+
+
 def test_unknown_planner_is_refused_by_argparse(capsys):
     with pytest.raises(SystemExit) as e:
         main(["evaluate", "--planner", "genetic"])
@@ -209,7 +266,8 @@ def test_failures_are_animated_from_their_recorded_actions(tmp_path):
     cfg = CFG.replace(task=TaskConfig(balance_limit=0.002))
     dists = [massdist.named("B", cfg.box), massdist.named("D", cfg.box)]
     keys = np.stack([np.asarray(jax.random.PRNGKey(0))] * 2).astype(np.uint32)
-    res = batch.run_episodes(cfg, dists, [jax.random.wrap_key_data(k) for k in keys])
+    paper = ControllerConfig(explore_guard=None)  # no guard: the fixed exploration loses both
+    res = batch.run_episodes(cfg, dists, [jax.random.wrap_key_data(k) for k in keys], ctrl=paper)
     assert res[0].summary["lost_exploring"] and res[1].summary["lost_exploring"]
     boxes = experiments.EvalBoxes(
         occupancy=np.stack([np.asarray(d.occupancy, np.float32) for d in dists]),
@@ -220,7 +278,11 @@ def test_failures_are_animated_from_their_recorded_actions(tmp_path):
     )
     rows = [experiments._row(j, boxes, r, cfg) for j, r in enumerate(res)]
     ev = experiments.Evaluation(
-        {}, rows, boxes, [r.trace.balance_error for r in res], [r.trace.actions for r in res]
+        experiments.settings("oracle", paper, 0, "gaussian"),  # the replay explores as they did
+        rows,
+        boxes,
+        [r.trace.balance_error for r in res],
+        [r.trace.actions for r in res],
     )
     paths = experiments.animate_failures(ev, cfg, tmp_path, max_frames=8)
     assert paths == [str(tmp_path / "failures" / f"box_{j}.gif") for j in (0, 1)]
