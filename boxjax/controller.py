@@ -44,8 +44,8 @@ class ControllerConfig:
     # The exploration guard (`explore.Guarded`), a fraction of the balance limit: a box whose balance error
     # passes it during the fixed exploration is re-centred and refused instead of being lost. None: the
     # paper's fixed sequence whatever happens. Models given to `run_episode` (W, PETS: no refusal) always
-    # explore without it. 0.875 (3.5 of 4 cm) was chosen over 0.75 on development boxes (README, "Random
-    # boxes").
+    # explore without it. 0.875 (3.5 of 4 cm) was chosen over 0.75 on development boxes (README, "Hazard
+    # decisions").
     explore_guard: float | None = 0.875
     planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
     sampling: Any = None  # sampling_planner.SamplingOptions (None: its defaults)

@@ -217,20 +217,6 @@ def describe_effect(cfg: Config = DEFAULT, names=("uniform", "A", "B", "C", "D")
     }
 
 
-__all__ = [
-    "HOLD",
-    "N_STEPS",
-    "N_TRAJ_COLUMNS",
-    "N_VECTORS",
-    "VECTORS",
-    "applied_actions",
-    "describe_effect",
-    "exploration_actions",
-    "run",
-    "trajectory",
-]
-
-
 # ----------------------------------------------------------------------------------------------------------
 # The exploration guard: a box the fixed sequence itself is about to lose is refused, not lost.
 
@@ -297,3 +283,20 @@ class Guarded:
             "stopped and the carriages re-centred under it. The fixed exploration cannot hold this box, "
             "so neither its estimate nor a turn is attempted."
         )
+
+
+__all__ = [
+    "GUARD_STEPS",
+    "HOLD",
+    "N_STEPS",
+    "N_TRAJ_COLUMNS",
+    "N_VECTORS",
+    "VECTORS",
+    "Guarded",
+    "applied_actions",
+    "describe_effect",
+    "exploration_actions",
+    "recentre_action",
+    "run",
+    "trajectory",
+]
