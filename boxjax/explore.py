@@ -247,7 +247,7 @@ class Guarded:
             raise ValueError(
                 f"the exploration guard must be a fraction of the balance limit in (0, 1), got {guard}"
             )
-        self.cfg, self.guard = cfg, guard
+        self.cfg = cfg
         self.threshold = None if guard is None else guard * cfg.task.balance_limit  # m
         self.actions = exploration_actions(cfg)
         self.k = 0  # fixed-sequence steps sent
