@@ -24,9 +24,11 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(__file__))
 from _util import emit, machine  # noqa: E402
 
-from boxjax import batch, comparison  # noqa: E402
+from boxjax import blackbox
 from boxjax.config import DEFAULT  # noqa: E402
-from boxjax.controller import ControllerConfig  # noqa: E402
+from boxjax.control import batch
+from boxjax.control.config import ControllerConfig
+from boxjax.experiments import comparison
 
 
 def _summary(rows, wall: float) -> dict:
@@ -64,7 +66,7 @@ def main() -> None:
         ap.error("--seeds, --devices and --slots must be >= 1 and --max-steps >= 2")
     n_dev = batch.use_host_devices(args.devices)  # before any JAX computation
     cfg = DEFAULT
-    model = comparison.load_black_box(args.method, None, cfg.gripper)
+    model = blackbox.load_black_box(args.method, None, cfg.gripper)
     ctrl = ControllerConfig()
     jobs = [(b, s) for b in args.boxes for s in range(args.seeds)]
     warm = [("A", 100 + j) for j in range(min(len(jobs), args.slots or batch.SLOTS_PER_DEVICE * n_dev))]

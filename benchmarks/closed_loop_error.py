@@ -28,7 +28,7 @@ import os
 import sys
 import time
 
-from boxjax import batch
+from boxjax.control import batch
 
 if __name__ == "__main__":
     batch.use_host_devices()
@@ -41,16 +41,18 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from _util import emit_to, machine  # noqa: E402
 
-from boxjax import experiments, geometry, massdist, prior, residual  # noqa: E402
+from boxjax import geometry, massdist, prior
 from boxjax.config import DEFAULT  # noqa: E402
+from boxjax.experiments import evaluation as experiments
 from boxjax.fileio import atomic_path  # noqa: E402
+from boxjax.prior import residual
 
 
 def collect(n_boxes: int, seed: int, policy_residual: str | None = None) -> dict:
     """Closed-loop oracle episodes of the default controller (planning with the learned residual
     `policy_residual` when given): per box s (T+1, 5), belt_speed, actions, masses and the exploration
     length, flattened into one npz-able dict."""
-    from boxjax.controller import ControllerConfig
+    from boxjax.control.config import ControllerConfig
 
     cfg = DEFAULT
     boxes = experiments.make_boxes(cfg, n_boxes, 0, seed)
@@ -154,7 +156,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--param", action="append", default=[])
     ap.add_argument("--traces", help="episodes npz: read if it exists, else written")
     ap.add_argument("--out", help="also write the JSON here (atomically)")
-    ap.add_argument("--residual", help="also the default prior with this learned residual (boxjax.residual)")
+    ap.add_argument(
+        "--residual", help="also the default prior with this learned residual (boxjax.prior.residual)"
+    )
     ap.add_argument("--policy-residual", help="the episodes' controller plans with this residual")
     args = ap.parse_args(argv)
     default = prior.PriorParams()

@@ -1,4 +1,4 @@
-"""Closed-loop episodes per second: batched (`boxjax.batch.run_episodes`) against one at a time
+"""Closed-loop episodes per second: batched (`boxjax.control.batch.run_episodes`) against one at a time
 (`controller.run_episode`), on the same random safe boxes and keys, measured in one run.
 
 Both paths are compiled first on other boxes (a short warm-up episode each), so the timed part is
@@ -27,8 +27,10 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(__file__))
 from _util import emit, machine  # noqa: E402
 
-from boxjax import batch, controller, experiments  # noqa: E402
+from boxjax import control as controller
 from boxjax.config import DEFAULT  # noqa: E402
+from boxjax.control import batch
+from boxjax.experiments import evaluation as experiments
 
 
 def _episodes(cfg, boxes, idx):
@@ -40,7 +42,7 @@ def planner_widths(cfg, ctrl, boxes, widths, calls: int = 10) -> dict:
     planner's cost per box and step, which bounds what batching can gain."""
     import jax.numpy as jnp
 
-    from boxjax import planning, prior
+    from boxjax import planning
 
     mpc = controller.make_planner(cfg, ctrl)
     w_max = max(widths)
@@ -51,8 +53,8 @@ def planner_widths(cfg, ctrl, boxes, widths, calls: int = 10) -> dict:
     obs = planning.observation(
         jnp.stack(
             [
-                s - (prior.MIN_WINDOW - 1 - i) * jnp.array([0, 0, 1e-3, 5e-4, 0.02])
-                for i in range(prior.MIN_WINDOW)
+                s - (planning.MIN_WINDOW - 1 - i) * jnp.array([0, 0, 1e-3, 5e-4, 0.02])
+                for i in range(planning.MIN_WINDOW)
             ]
         ),
         jnp.array([0.12, -0.1]),

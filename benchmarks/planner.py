@@ -23,9 +23,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import calibrate, massdist, planner, prior
-from boxjax import sampling_planner as sp
+from boxjax import massdist, prior
 from boxjax.config import DEFAULT
+from boxjax.planners import paper as planner
+from boxjax.planners import sampling as sp
+from boxjax.prior import force_map as calibrate
 
 # Sampling-planner settings timed (SamplingOptions overrides; "default" is the class default).
 SAMPLING_CONFIGS = {

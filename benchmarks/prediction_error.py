@@ -50,9 +50,10 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from boxjax import geometry, massdist, planner, prior, task
+from boxjax import geometry, massdist, prior, task
 from boxjax.config import DEFAULT, Config
 from boxjax.fileio import atomic_path
+from boxjax.planners import paper as planner
 from boxjax.sim import make_env
 
 NAMED_BOXES = ("uniform", "A", "B", "C")

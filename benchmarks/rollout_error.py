@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 import prediction_error as pe  # noqa: E402
 from _util import emit_to  # noqa: E402
 
-from boxjax import geometry, prior  # noqa: E402
+from boxjax import geometry, prior
 from boxjax.config import DEFAULT  # noqa: E402
 
 VARIANTS = {

@@ -66,9 +66,9 @@ def native_rollout(cfg, dist, nbatch: int, nstep: int, repeats: int) -> float:
 
 
 def mjx_batch(env: MjxEnv, params, batch: int, n_control: int, repeats: int) -> dict:
-    """World-steps/s of jit(vmap(scan(env.step))) over `batch` worlds for n_control control steps."""
+    """World-steps/s of jit(vmap(scan(env.pure_step))) over `batch` worlds for n_control control steps."""
     p = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), params)
-    states = jax.jit(jax.vmap(env.init))(p, jax.random.split(jax.random.PRNGKey(0), batch))
+    states = jax.jit(jax.vmap(env.pure_init))(p, jax.random.split(jax.random.PRNGKey(0), batch))
     acts = jnp.broadcast_to(jnp.asarray(ROTATE, jnp.float32), (batch, n_control, 4))
 
     chunk = default_chunk() if batch > (default_chunk() or batch) else None
@@ -76,7 +76,7 @@ def mjx_batch(env: MjxEnv, params, batch: int, n_control: int, repeats: int) -> 
     @jax.jit
     def run(states, acts):
         def one(s, a):
-            return jax.lax.scan(lambda s, a: (env.step(s, a), None), s, a)[0]
+            return jax.lax.scan(lambda s, a: (env.pure_step(s, a), None), s, a)[0]
 
         return chunked_vmap(one, chunk)(states, acts).s
 

@@ -26,7 +26,7 @@ class ConfigError(ValueError):
 class Hardware:
     """What the real gripper can do. A `GripperConfig` may ask for less, never more.
 
-    Belt limits are from a public SOTO conveyor note (units assumed m/s and m/s^2, see DESIGN.md).
+    Belt limits are from a public SOTO conveyor note (units assumed m/s and m/s^2, see docs/design.md).
     """
 
     max_belt_speed: float = 0.247  # m/s
@@ -82,7 +82,7 @@ class BoxConfig:
 
 @dataclass(frozen=True)
 class GripperConfig:
-    """The two-belt gripper as simulated (DESIGN.md "Simulation").
+    """The two-belt gripper as simulated (docs/design.md "Simulation").
 
     Belt i (i = 1 left, y < 0; i = 2 right, y > 0) is a slab whose surface runs along x at a commanded
     speed, carried by a carriage that slides along y under a position servo.

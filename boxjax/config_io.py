@@ -20,8 +20,10 @@ import math
 import os
 import re
 import sys
+from typing import Any
 
 from boxjax.config import DEFAULT, BoxConfig, Config, ConfigError, GripperConfig, TaskConfig
+from boxjax.fileio import atomic_path
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -157,7 +159,6 @@ def load(path) -> Config:
 
 def save(path, cfg: Config) -> str:
     """Write `cfg` as TOML, atomically. Returns the path."""
-    from boxjax.fileio import atomic_path
 
     with atomic_path(path, suffix=".toml") as tmp:
         with open(tmp, "w") as f:
@@ -169,10 +170,43 @@ def save(path, cfg: Config) -> str:
 # Do the shipped models fit a config?
 
 
+def _get(cfg_dict: dict, dotted: str):
+    out = cfg_dict
+    for part in dotted.split("."):
+        out = out[part]
+    return out
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
+    return a == b
+
+
+MISSING = object()  # `field_mismatches`: the stored dict has no such field
+
+
+def field_mismatches(stored: dict, expected: dict, fields) -> list[tuple[str, Any, Any]]:
+    """(name, stored value or MISSING, expected value) for each dotted field name where two config
+    dicts differ (floats compared to 1e-9): how a model or calibration file is checked against a config."""
+    out = []
+    for name in fields:
+        want = _get(expected, name)
+        try:
+            have = _get(stored, name)
+        except (KeyError, TypeError):
+            out.append((name, MISSING, want))
+            continue
+        if not _same(have, want):
+            out.append((name, have, want))
+    return out
+
+
 def differences(stored: dict, cfg: Config, fields) -> list[str]:
     """'name: model has X, config has Y' for each of `fields` (dotted) where `stored` (a Config's
     `to_dict()`) and `cfg` differ; a field missing from `stored` counts as different."""
-    from boxjax.calibrate import MISSING, field_mismatches  # the calibration file's own comparison
 
     return [
         f"{name}: not recorded in the model, config has {w!r}"
@@ -180,69 +214,3 @@ def differences(stored: dict, cfg: Config, fields) -> list[str]:
         else f"{name}: model has {have!r}, config has {list(w) if isinstance(w, tuple) else w!r}"
         for name, have, w in field_mismatches(stored, cfg.to_dict(), fields)
     ]
-
-
-def _config_flag(config_path) -> str:
-    return f" --config {config_path}" if config_path else " --config FILE.toml"
-
-
-def estimator_mismatch(cfg: Config, weights=None) -> list[str]:
-    """The fields (ESTIMATOR_FIELDS) where the config H was trained for differs from `cfg`; [] when it
-    fits or records no config (a checkpoint made outside `train_estimator`: its grid is still checked on
-    load)."""
-    from boxjax import estimator as E
-    from boxjax.estimator_pipeline import SHIPPED_WEIGHTS
-
-    model = E.load(SHIPPED_WEIGHTS if weights is None else weights)
-    stored = model.provenance.get("config")
-    return [] if stored is None else differences(stored, cfg, ESTIMATOR_FIELDS)
-
-
-def require_models(
-    cfg: Config,
-    *,
-    estimator: bool = False,
-    weights=None,
-    calibration: bool = False,
-    baseline: bool = False,
-    baseline_weights=None,
-    config_path=None,
-) -> None:
-    """Refuse (ConfigError) when a model the command will use was made for another config than `cfg`:
-    the learned H (`estimator`, the shipped one or `weights`), the shipped calibration (`calibration`,
-    for the paper prior) or the black box W (`baseline`, the shipped one or `baseline_weights`). The
-    message names the fields that differ and the command that makes a model for this config."""
-    flag = _config_flag(config_path)
-    if estimator:
-        diffs = estimator_mismatch(cfg, weights)
-        if diffs:
-            which = "the shipped estimator H" if weights is None else f"estimator {weights}"
-            raise ConfigError(
-                f"{which} was trained for another configuration ({'; '.join(diffs)}); it would misjudge "
-                f"every box. Train one for this configuration: `boxjax train-estimator{flag} --out h_run` "
-                "and pass `--weights h_run/estimator.npz`"
-            )
-    if calibration and cfg != DEFAULT:
-        from boxjax import calibrate
-
-        try:
-            calibrate.load(calibrate.SHIPPED_CALIBRATION, cfg)
-        except calibrate.CalibrationError as e:
-            raise ConfigError(
-                f"the shipped calibration (paper prior, --variant paper) does not fit this config: {e}. Make "
-                f"one: `boxjax calibrate{flag} --out cal.npz` and pass `--calibration cal.npz` to `boxjax "
-                "rotate` (evaluate uses the shipped calibration only)"
-            ) from e
-    if baseline:
-        from boxjax import baseline as B
-
-        stored_path = B.shipped_path() if baseline_weights is None else baseline_weights
-        try:
-            B.load(stored_path, gripper=cfg.gripper)
-        except B.BaselineCheckpointError as e:
-            if "another gripper" not in str(e):
-                raise
-            raise ConfigError(
-                f"{e}. Train W for this configuration: `boxjax train-baseline{flag} --out w_run` and pass "
-                "`--model-weights w_run/baseline.npz`"
-            ) from e

@@ -7,6 +7,7 @@ rad). All functions here act on ONE state; vmap them for batches.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -76,3 +77,19 @@ def contact_masks(s, box: BoxConfig, gripper: GripperConfig):
 def balance_error(s):
     """|y_geom - (P1 + P2) / 2| (m): how far the box's geometric centre is from midway between belts."""
     return jnp.abs(s[Y] - 0.5 * (s[P1] + s[P2]))
+
+
+def rot2(theta) -> jax.Array:
+    """(2, 2) planar rotation matrix."""
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    return jnp.array([[c, -s], [s, c]])
+
+
+def perp(r) -> jax.Array:
+    """z x r for planar vectors r (..., 2): (-r_y, r_x). omega * perp(r) is the velocity of a point at r."""
+    return jnp.stack([-r[..., 1], r[..., 0]], axis=-1)
+
+
+def cross2(r, f) -> jax.Array:
+    """z component of r x f for planar vectors (..., 2)."""
+    return r[..., 0] * f[..., 1] - r[..., 1] * f[..., 0]

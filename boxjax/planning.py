@@ -1,6 +1,6 @@
 """One interface for every MPC planner, and one slot for the dynamics model they plan with.
 
-The MPC is "same planner, different model" (DESIGN.md): the physics prior (`prior.PriorModel`) and the
+The MPC is "same planner, different model" (docs/design.md): the physics prior (`prior.PriorModel`) and the
 black-box W (`baseline`) both fill the model slot, and every planner -- the paper's one-step Pareto random
 shooting (`planner`), predictive sampling and its MPPI / CEM / gradient-refined relatives
 (`sampling_planner`), the privileged simulator reference (`simulator_planner`) -- implements the same
@@ -72,6 +72,9 @@ from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from boxjax import geometry
 
 NO_MARGIN = 1.0  # m, the stability margin a model reports when it cannot know it (larger than the box)
 RISKS = ("mean", "mean_std", "worst")  # how particle costs of one candidate are aggregated (`aggregate`)
@@ -352,3 +355,55 @@ class Mixture:
         """(2,) m, the mean centre of mass of the members that know one (None: none does)."""
         known = [c for c in (planar_com(m) for m in self.members) if c is not None]
         return jnp.mean(jnp.stack(known), axis=0) if known else None
+
+
+MIN_WINDOW = 3  # states s_{t-2}, s_{t-1}, s_t: second-order velocities and the pre-action acceleration
+
+
+def check_window(window, belt_speed=None, action=None, min_window: int = MIN_WINDOW) -> np.ndarray:
+    """Validate predictor inputs on the host; returns the window as a float32 array.
+
+    Raises:
+      ValueError: window not of shape (W, 5), W < min_window (MIN_WINDOW = 3 states at control_dt
+        spacing are needed), non-finite values (naming the rows and state components), or a belt_speed
+        not (2,) / an action not (4,) / either non-finite.
+    """
+    w = np.asarray(window, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != 5:
+        raise ValueError(
+            f"window must have shape (W, 5) = planar states {geometry.STATE_NAMES} over time, got {w.shape}"
+        )
+    if w.shape[0] < min_window:
+        raise ValueError(
+            f"window has {w.shape[0]} states; the predictor needs at least {min_window} "
+            f"(s_(t-2), s_(t-1), s_t at control_dt spacing). At the start of an episode, repeat the "
+            "initial state (the box is at rest)."
+        )
+    bad = ~np.isfinite(w)
+    if np.any(bad):
+        rows, cols = np.nonzero(bad)
+        names = geometry.STATE_NAMES
+        where = ", ".join(f"row {r} {names[c]}" for r, c in zip(rows[:5], cols[:5], strict=True))
+        raise ValueError(f"window contains NaN or inf ({int(bad.sum())} values: {where})")
+    for name, x, n in (("belt_speed", belt_speed, 2), ("action", action, 4)):
+        if x is None:
+            continue
+        a = np.asarray(x, dtype=np.float64)
+        if a.shape != (n,):
+            raise ValueError(f"{name} must have shape ({n},), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} contains NaN or inf: {a.tolist()}")
+    return w.astype(np.float32)
+
+
+def initial_window(s0, length: int = MIN_WINDOW) -> jax.Array:
+    """(length, 5) window for the first step of an episode: the initial state repeated (box at rest)."""
+    return jnp.tile(jnp.asarray(s0, jnp.float32)[None], (length, 1))
+
+
+def next_belt_speed(model, belt_speed, action) -> jax.Array:
+    """(2,) m/s belt speeds after one step: the setpoint, or as close as belt_accel_limit allows."""
+    gr = model.gripper
+    sp = jnp.clip(action[:2], -gr.belt_speed_limit, gr.belt_speed_limit)
+    dv = gr.belt_accel_limit * gr.control_dt
+    return belt_speed + jnp.clip(sp - belt_speed, -dv, dv)

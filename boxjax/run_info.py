@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import boxjax
+
 _REPO = Path(__file__).resolve().parent.parent
 
 
@@ -81,8 +83,6 @@ def versions() -> dict:
     import jaxlib
     import mujoco
     import numpy as np
-
-    import boxjax
 
     commit = _git("rev-parse", "HEAD")
     dirty = _git("status", "--porcelain", "--untracked-files=no")

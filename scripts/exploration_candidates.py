@@ -1,7 +1,9 @@
 """Compare exploration sequences: what a net can recover from each, and how safe each is while exploring.
 
-For every candidate (15 vectors (v1, v2, dp1, dp2), each held 3 steps, like `boxjax.explore.VECTORS`) this
-simulates the same random boxes (`boxjax.dataset`, seeds 100 / 101: --boxes training and 1000 test boxes,
+For every candidate (15 vectors (v1, v2, dp1, dp2), each held 3 steps, like
+`boxjax.estimator.explore.VECTORS`) this
+simulates the same random boxes (`boxjax.training.dataset`, seeds 100 / 101: --boxes training and 1000 test
+boxes,
 25 % drawn hazardous), then
 
   * safety: the share of non-hazardous / hazardous test boxes whose balance error crosses the 4 cm limit
@@ -28,10 +30,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from boxjax import dataset, explore, massdist, mlp
 from boxjax import estimator as E
+from boxjax import massdist, mlp
 from boxjax.config import DEFAULT
-from boxjax.estimator_pipeline import write_json
+from boxjax.estimator import explore
+from boxjax.training import dataset
+from boxjax.training.estimator import write_json
 
 _TURN = [[+0.09, -0.09, 0, 0], [+0.12, -0.12, 0, 0]]
 _PROBES = [
@@ -78,14 +82,16 @@ CANDIDATES = {
     + _SQUEEZE
     + [[-0.09, +0.09, 0, 0], [-0.12, +0.12, 0, 0], [-0.03, +0.03, 0, 0]],
     "previous_without_squeeze": _PREVIOUS[:11] + [[-0.09, +0.09, 0, 0], [0, 0, 0, 0]] + _SHIFT,
-    # boxjax.explore.VECTORS since 2026-11-30: turn, probe at the turned yaw, turn back, end at rest.
+    # boxjax.estimator.explore.VECTORS since 2026-11-30: turn, probe at the turned yaw, turn back, end at
+    # rest.
     "turn_probe_return": explore.VECTORS.tolist(),
 }
 
 
 @contextlib.contextmanager
 def exploration(vectors):
-    """Run `boxjax.explore` with another sequence inside the block (the module reads VECTORS per call)."""
+    """Run `boxjax.estimator.explore` with another sequence inside the block (the module reads VECTORS per
+    call)."""
     saved = explore.VECTORS
     explore.VECTORS = np.asarray(vectors, np.float64)
     try:

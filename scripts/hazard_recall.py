@@ -8,7 +8,8 @@ Boxes (one seed; every family from its own key):
   * items_any (optional, --items-any N): `massdist.sample_items`, small items anywhere (hazardous or not):
     recall on its hazardous boxes, false aborts on its label-safe ones.
 Each box runs the fixed 45-step exploration open loop (`dataset.simulate`, native MuJoCo on all threads);
-H's ensemble gives its evidence (`boxjax.hazard.evidence_batch`) and each rule decides: "head" (H's hazard
+H's ensemble gives its evidence (`boxjax.estimator.hazard.evidence_batch`) and each rule decides: "head" (H's
+hazard
 head alone, its calibrated threshold), "physics_only" and "physics" (physics or head; the controller's
 default). Diagnostics in physical terms: H's centre-of-mass error on each family against the depth of the
 true centre of mass inside its region, and what a rule on the TRUE centre of mass (or its first two moments
@@ -33,11 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import dataset as ds
 from boxjax import estimator as E
-from boxjax import hazard, massdist
+from boxjax import massdist
 from boxjax.config import DEFAULT
-from boxjax.estimator_pipeline import _check_exploration, default_estimator
+from boxjax.estimator import hazard
+from boxjax.estimator.shipped import check_exploration, default_estimator
+from boxjax.training import dataset as ds
 
 
 def _draw(sampler, key, n, box):
@@ -300,7 +302,7 @@ def main(argv=None) -> dict:
             models["boxjax/data/estimator.npz"] = default_estimator(cfg)
         else:
             models[path] = E.load(path, expected_box_config=box)
-            _check_exploration(models[path], cfg, path)
+            check_exploration(models[path], cfg, path)
 
     key_g, key_i, key_s, key_a = jax.random.split(jax.random.key(args.seed), 4)
     fams = {

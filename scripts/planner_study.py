@@ -21,11 +21,12 @@ import argparse
 import json
 import sys
 
-from boxjax import batch, experiments
 from boxjax.config import DEFAULT
-from boxjax.controller import ControllerConfig
-from boxjax.prior import PriorParams
-from boxjax.sampling_planner import SamplingOptions
+from boxjax.control import batch
+from boxjax.control.config import ControllerConfig
+from boxjax.experiments import evaluation as experiments
+from boxjax.planners.sampling import SamplingOptions
+from boxjax.prior.predictor import PriorParams
 
 
 def _pairs(items: list[str], what: str) -> dict:

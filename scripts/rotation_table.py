@@ -19,7 +19,10 @@ from tqdm import tqdm
 
 from boxjax import massdist
 from boxjax.config import DEFAULT
-from boxjax.controller import PLANNERS, ControllerConfig, learned_estimator, run_episode
+from boxjax.control.config import ControllerConfig
+from boxjax.control.episode import run_episode
+from boxjax.estimator.belief import learned_estimator
+from boxjax.planners.registry import PLANNERS
 
 
 def main():

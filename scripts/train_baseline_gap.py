@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from boxjax import comparison
+from boxjax.experiments import comparison
 from boxjax.fileio import atomic_path
 
 

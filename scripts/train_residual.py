@@ -1,4 +1,4 @@
-"""Train a learned residual on the physics prior (`boxjax.residual`) from closed-loop episodes.
+"""Train a learned residual on the physics prior (`boxjax.prior.residual`) from closed-loop episodes.
 
     python benchmarks/closed_loop_error.py --boxes 192 --seed 7 --traces /tmp/tr7.npz   # episodes
     python benchmarks/closed_loop_error.py --boxes 64 --seed 8 --traces /tmp/tr8.npz
@@ -19,7 +19,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from boxjax import residual
+from boxjax.prior import residual
 
 
 def _load(paths: list[str], horizon: int, stride: int, start: str) -> dict:

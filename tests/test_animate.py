@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from boxjax import animate, massdist
+from boxjax import massdist
 from boxjax.cli import main
 from boxjax.config import DEFAULT
 from boxjax.sim import make_env
 from boxjax.sim.episode import naive_policy, run_episode
+from boxjax.viz import animate
 
 
 @pytest.fixture(scope="module")

@@ -9,11 +9,11 @@ import jax
 import numpy as np
 import pytest
 
-from boxjax import baseline as B
-from boxjax import baseline_train as T
 from boxjax import cli, massdist, planning, prior
-from boxjax import sampling_planner as sp
+from boxjax.blackbox import baseline as B
 from boxjax.config import DEFAULT
+from boxjax.planners import sampling as sp
+from boxjax.training import baseline as T
 
 SMALL = B.BaselineConfig(hidden=(64, 64), epochs=40, batch=64, lr=3e-3, adapt_lr=1e-3, adapt_batch=32)
 G = DEFAULT.gripper
@@ -93,7 +93,7 @@ def test_adaptation_changes_params_and_lowers_the_episode_error(linear_model):
 
 def test_model_slot_interface_and_no_margin(linear_model):
     model, _, _ = linear_model
-    window = prior.initial_window(np.array([-0.1, 0.1, 0.0, 0.0, 0.0]))
+    window = planning.initial_window(np.array([-0.1, 0.1, 0.0, 0.0, 0.0]))
     acts = np.zeros((4, 4), np.float32)
     acts[:, :2] = [0.03, -0.03]
     states = model.rollout_sequence(window, np.zeros(2), acts)
@@ -110,7 +110,7 @@ def test_same_action_for_same_model_and_key_whichever_model(linear_model):
     p_model = prior.make_prior(massdist.voxel_masses(massdist.named("A")), None)
     pl = sp.make(DEFAULT, sp.SamplingOptions(n_samples=8, horizon=3))
     obs = planning.observation(
-        prior.initial_window(np.array([-0.1, 0.1, 0.0, 0.0, 0.0])), np.zeros(2), np.pi / 2
+        planning.initial_window(np.array([-0.1, 0.1, 0.0, 0.0, 0.0])), np.zeros(2), np.pi / 2
     )
     key = jax.random.PRNGKey(3)
     for model in (w_model, p_model):
@@ -169,7 +169,7 @@ def test_shipped_weights_load_with_paper_size():
     assert 2.0e6 < B.n_params(model) < 3.0e6
     assert meta["info"]["distribution"] == "A"
     assert os.path.getsize(B.shipped_path()) <= 10 * 2**20
-    from boxjax import comparison
+    from boxjax.experiments import comparison
 
     t2 = comparison.table2()
     assert t2[1]["transitions"] == meta["info"]["transitions"] and t2[1]["zero_shot"] is False
@@ -203,7 +203,7 @@ def test_cli_refuses_a_wrong_checkpoint(linear_model, tmp_path, capsys):
 
 
 def test_comparison_table_aggregates_rows():
-    from boxjax import comparison
+    from boxjax.experiments import comparison
 
     def row(method, box, seed, outcome, steps, adapt=0.0, n_adapt=0):
         s = {

@@ -1,4 +1,5 @@
-"""Batched episodes (boxjax.batch, sim.native.NativeBatch): the same physics as the one-box env bit for
+"""Batched episodes (boxjax.control.batch, sim.native.NativeBatch): the same physics as the one-box env bit
+for
 bit, the same decisions and outcomes as `controller.run_episode`, exact replays, bad input named."""
 
 from __future__ import annotations
@@ -7,9 +8,12 @@ import jax
 import numpy as np
 import pytest
 
-from boxjax import batch, controller, experiments, massdist
+from boxjax import control as controller
+from boxjax import massdist
 from boxjax.config import DEFAULT as cfg
-from boxjax.sampling_planner import SamplingOptions
+from boxjax.control import batch
+from boxjax.experiments import evaluation as experiments
+from boxjax.planners.sampling import SamplingOptions
 from boxjax.sim.native import NativeBatch, NativeEnv
 
 
@@ -122,9 +126,11 @@ def test_unsupported_controllers_and_bad_arguments_are_named():
 
 SHARDED = """
 import json, jax
-from boxjax import batch, controller, massdist
+from boxjax import control as controller
+from boxjax import massdist
+from boxjax.control import batch
 from boxjax.config import DEFAULT as cfg
-from boxjax.sampling_planner import SamplingOptions
+from boxjax.planners.sampling import SamplingOptions
 assert batch.use_host_devices(2) == 2
 ctrl = controller.ControllerConfig(sampling=SamplingOptions(gradient_steps=0))
 dists = [massdist.named(n, cfg.box) for n in ("uniform", "A", "D")]
@@ -156,7 +162,7 @@ def test_sharding_splits_the_box_axis_when_there_are_several_devices():
 
 def _small_w():
     """A small random W predicting about constant velocity (residuals of ~1 mm)."""
-    from boxjax import baseline
+    from boxjax.blackbox import baseline
 
     small = baseline.BaselineConfig(hidden=(32, 32), adapt_batch=16, adapt_lr=1e-3)
     stats = {"x_mean": np.zeros(22), "x_std": np.ones(22), "y_mean": np.zeros(5), "y_std": np.full(5, 1e-3)}
@@ -167,7 +173,7 @@ def test_a_black_box_in_the_slot_adapts_each_box_on_its_own_episode():
     """W in the model slot with online adaptation, batched: every box adapts its own copy of the model,
     on its own episode so far, on the one-box path's schedule (a small random W: the plumbing, not W's
     skill, is tested here)."""
-    from boxjax import baseline
+    from boxjax.blackbox import baseline
 
     w = _small_w()
     real = baseline.make_adapter(1)
@@ -209,7 +215,7 @@ def test_a_black_box_in_the_slot_adapts_each_box_on_its_own_episode():
 
 
 def test_batched_black_box_rows_are_the_one_at_a_time_rows():
-    from boxjax import comparison
+    from boxjax.experiments import comparison
 
     w, jobs = _small_w(), [("A", 0), ("C", 1)]
     kw = dict(adapt_every=10, ctrl=CTRL, max_steps=22)

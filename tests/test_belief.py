@@ -7,9 +7,11 @@ import jax
 import numpy as np
 import pytest
 
-from boxjax import controller, estimator, explore, massdist, planning
+from boxjax import control as controller
+from boxjax import estimator, massdist, planning
 from boxjax.config import DEFAULT as cfg
-from boxjax.estimator_pipeline import default_estimator
+from boxjax.estimator import explore
+from boxjax.estimator.shipped import default_estimator
 from boxjax.sim import native
 
 
@@ -62,7 +64,7 @@ def test_ensemble_belief_refused_where_it_cannot_work():
         controller.planning_model(
             cfg, controller.ControllerConfig(belief="ensemble"), massdist.named("A", cfg.box), est={}
         )
-    from boxjax import experiments
+    from boxjax.experiments import evaluation as experiments
 
     with pytest.raises(ValueError, match="oracle"):
         experiments.evaluate(cfg, 1, ctrl=controller.ControllerConfig(belief="ensemble"), progress=False)

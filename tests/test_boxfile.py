@@ -147,7 +147,7 @@ def test_a_bad_box_file_on_rotate_exits_2_with_one_line(tmp_path, capsys):
 def _round_trip(tmp_path, capsys, seed: int, *extra: str) -> tuple[dict, dict]:
     """box --random SEED -> file -> rotate --box FILE, and controller.run_episode on the same
     distribution and key: (CLI summary, API summary)."""
-    from boxjax.controller import run_episode
+    from boxjax.control.episode import run_episode
 
     path = tmp_path / "mine.npz"
     assert main(["box", "--random", str(seed), "--out", str(path), "--json"]) == 0

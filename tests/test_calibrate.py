@@ -11,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import calibrate, massdist
-from boxjax.calibrate import CalibrationError, ForceMap
+from boxjax import massdist
 from boxjax.config import DEFAULT, BoxConfig
+from boxjax.prior import force_map as calibrate
+from boxjax.prior.force_map import CalibrationError, ForceMap
 
 G = DEFAULT.gripper
 BOX = DEFAULT.box
@@ -218,7 +219,7 @@ def _run_cli(capsys, *argv):
 
 
 def test_collect_transitions_are_disjoint_and_windows_chain():
-    from boxjax import calibration_run as R
+    from boxjax.training import calibration as R
 
     tr = R.collect_transitions(DEFAULT, jax.random.PRNGKey(5), 24, progress=False)
     n = tr.component.size
@@ -270,7 +271,7 @@ def test_calibrate_command_writes_loadable_reproducible_file(tmp_path, monkeypat
 
 
 def test_calibrate_seed_changes_the_data():
-    from boxjax import calibration_run as R
+    from boxjax.training import calibration as R
 
     a = R.collect_transitions(DEFAULT, jax.random.PRNGKey(0), 12, progress=False)
     b = R.collect_transitions(DEFAULT, jax.random.PRNGKey(1), 12, progress=False)

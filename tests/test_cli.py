@@ -71,7 +71,7 @@ def test_demo_turns_A_and_draws_the_figure(capsys, tmp_path):
 
 def test_estimator_commands_pass_backend_and_chunk(capsys, monkeypatch, tmp_path):
     """--backend and --chunk reach the dataset generator; a chunk of 0 boxes is refused by name."""
-    from boxjax import dataset
+    from boxjax.training import dataset
 
     seen = []
     generate = dataset.generate
@@ -137,7 +137,7 @@ def test_estimator_eval_on_mjx(capsys):
     ],
 )
 def test_an_option_that_does_nothing_is_refused(argv, message, capsys):
-    """Every option acts or is refused, saying who uses it (one mechanism: boxjax.cli_args)."""
+    """Every option acts or is refused, saying who uses it (one mechanism: boxjax.cli.args)."""
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1

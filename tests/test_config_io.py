@@ -9,6 +9,7 @@ import pytest
 
 from boxjax import config_io
 from boxjax.cli import main
+from boxjax.cli import models as cli_models
 from boxjax.config import DEFAULT
 
 
@@ -92,7 +93,8 @@ def test_another_friction_coefficient_changes_the_episode(tmp_path, capsys):
 
 def test_rotate_and_evaluate_run_with_the_files_config(tmp_path, monkeypatch, capsys):
     """The config reaches the controller and the evaluation (spies; no episode is run)."""
-    from boxjax import controller, experiments
+    from boxjax.control import episode as controller
+    from boxjax.experiments import evaluation as experiments
 
     seen = []
 
@@ -133,4 +135,4 @@ def test_shipped_calibration_and_w_refuse_another_gripper(tmp_path, capsys):
     assert main(["rotate", "--model", "blackbox", "--config", path]) == 2
     assert f"boxjax train-baseline --config {path}" in capsys.readouterr().err
     # a config that changes only the task's rules keeps the shipped H
-    config_io.require_models(config_io.loads("[task]\nbalance_limit = 0.05\n"), estimator=True)
+    cli_models.require_models(config_io.loads("[task]\nbalance_limit = 0.05\n"), estimator=True)

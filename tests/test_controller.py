@@ -8,7 +8,9 @@ import pytest
 
 from boxjax import massdist
 from boxjax.config import DEFAULT
-from boxjax.controller import ControllerConfig, hazard_explanation, run_episode
+from boxjax.control.config import ControllerConfig
+from boxjax.control.episode import run_episode
+from boxjax.estimator.belief import hazard_explanation
 
 CFG = DEFAULT
 

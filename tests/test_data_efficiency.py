@@ -9,10 +9,11 @@ import json
 import numpy as np
 import pytest
 
-from boxjax import baseline, experiments
-from boxjax import baseline_train as T
-from boxjax import data_efficiency as D
+from boxjax.blackbox import baseline
 from boxjax.config import DEFAULT
+from boxjax.experiments import data_efficiency as D
+from boxjax.experiments import evaluation as experiments
+from boxjax.training import baseline as T
 
 
 def _dataset(path, episodes: int = 10, steps: int = 30) -> dict:
@@ -104,7 +105,7 @@ TINY_W = baseline.BaselineConfig(hidden=(16,), epochs=1)
 
 def test_w_point_counts_what_random_safe_returns(tmp_path, monkeypatch):
     """W trained on the first 4 of 5 episodes; the evaluation replaced by two known rows."""
-    from boxjax import comparison
+    from boxjax.experiments import comparison
 
     _dataset(tmp_path / "d.npz", episodes=5)
     seen = {}

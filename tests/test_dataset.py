@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 from npz_util import rewrite
 
-from boxjax import dataset, explore, massdist
+from boxjax import massdist
 from boxjax.config import DEFAULT, BoxConfig
+from boxjax.estimator import explore
+from boxjax.training import dataset
 
 CFG = DEFAULT
 N = 8

@@ -9,10 +9,13 @@ import jax
 import numpy as np
 import pytest
 
-from boxjax import controller, experiments, massdist, prior
+from boxjax import control as controller
+from boxjax import massdist, prior
 from boxjax.cli import main
 from boxjax.config import DEFAULT, TaskConfig
-from boxjax.controller import ControllerConfig, run_episode
+from boxjax.control.config import ControllerConfig
+from boxjax.control.episode import run_episode
+from boxjax.experiments import evaluation as experiments
 
 CFG = DEFAULT
 
@@ -110,7 +113,8 @@ def test_the_exploration_guard_refuses_a_box_the_fixed_sequence_would_lose():
     (the default) the balance error passing 0.875 x 2 mm stops the sequence: the belts stop, the
     carriages follow the box, and the episode is a refusal that says why, on the one-box path, the
     batched path and the replay of its recorded actions alike; the estimator is never asked."""
-    from boxjax import batch, explore
+    from boxjax.control import batch
+    from boxjax.estimator import explore
 
     cfg = CFG.replace(task=TaskConfig(balance_limit=0.002))
 
@@ -146,7 +150,7 @@ def test_the_exploration_guard_is_a_fraction_of_the_limit():
     with pytest.raises(ValueError, match="explore_guard"):
         ControllerConfig(explore_guard=1.5)
     with pytest.raises(ValueError, match="fraction"):
-        from boxjax import explore
+        from boxjax.estimator import explore
 
         explore.Guarded(CFG, 0.0)
 
@@ -261,7 +265,7 @@ def test_failures_are_animated_from_their_recorded_actions(tmp_path):
     their GIFs are written from the episodes' recorded actions; a refused box gets none."""
     from PIL import Image
 
-    from boxjax import batch
+    from boxjax.control import batch
 
     cfg = CFG.replace(task=TaskConfig(balance_limit=0.002))
     dists = [massdist.named("B", cfg.box), massdist.named("D", cfg.box)]

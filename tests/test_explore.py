@@ -7,8 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from boxjax import explore, geometry, massdist
+from boxjax import geometry, massdist
 from boxjax.config import DEFAULT
+from boxjax.estimator import explore
 from boxjax.sim import make_env
 from boxjax.sim.native import rollout
 

@@ -8,7 +8,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from boxjax.config import DEFAULT
-from boxjax.gym import ENV_ID, OBS_NAMES, BoxTurnEnv
+from boxjax.sim.gym import ENV_ID, OBS_NAMES, BoxTurnEnv
 
 
 def test_gymnasium_env_checker_passes():
@@ -20,7 +20,7 @@ def test_gymnasium_env_checker_passes():
 
 def test_random_policy_episode_through_gymnasium_make():
     cfg = DEFAULT.replace(task=DEFAULT.task.__class__(max_steps=60))
-    env = gymnasium.make("boxjax.gym:" + ENV_ID, cfg=cfg)
+    env = gymnasium.make("boxjax.sim.gym:" + ENV_ID, cfg=cfg)
     env.action_space.seed(1)
     obs, info = env.reset(seed=3)
     assert obs.shape == (len(OBS_NAMES),) and env.observation_space.contains(obs)

@@ -1,4 +1,4 @@
-"""Item samplers and the physical hazard decision (boxjax.hazard; issue 11 item 4)."""
+"""Item samplers and the physical hazard decision (boxjax.estimator.hazard; issue 11 item 4)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import controller, hazard, massdist
-from boxjax import dataset as ds
+from boxjax import control as controller
+from boxjax import massdist
 from boxjax.config import DEFAULT
-from boxjax.estimator_pipeline import default_estimator
+from boxjax.estimator import hazard
+from boxjax.estimator.shipped import default_estimator
+from boxjax.training import dataset as ds
 
 BOX = DEFAULT.box
 KEYS = jax.random.split(jax.random.key(3), 300)
@@ -105,7 +107,7 @@ def test_learned_estimator_rejects_an_unknown_hazard_rule():
 
 
 def test_learned_estimator_explains_its_refusal_physically():
-    from boxjax import explore
+    from boxjax.estimator import explore
     from boxjax.sim import native
 
     out = native.rollout(DEFAULT, [massdist.named("D", BOX)], explore.exploration_actions(DEFAULT))

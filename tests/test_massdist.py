@@ -504,11 +504,11 @@ def test_named_on_another_grid():
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Plot (smoke test of boxjax.plots' voxel figure).
+# Plot (smoke test of boxjax.viz.plots' voxel figure).
 
 
 def test_plot_mass_distributions_writes_png(tmp_path):
-    from boxjax import plots
+    from boxjax.viz import plots
 
     path = tmp_path / "sub" / "named.png"
     out = plots.plot_mass_distributions({"A": md.named("A", BOX), "D": md.named("D", BOX)}, BOX, path)

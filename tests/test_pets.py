@@ -11,11 +11,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import baseline, pets, planning, prior
-from boxjax import baseline_train as T
-from boxjax import pets_train as PT
-from boxjax import sampling_planner as sp
+from boxjax import blackbox, planning
+from boxjax.blackbox import baseline, pets
 from boxjax.config import DEFAULT
+from boxjax.planners import sampling as sp
+from boxjax.training import baseline as T
+from boxjax.training import pets as PT
 
 CFG = DEFAULT
 G = CFG.gripper
@@ -25,7 +26,7 @@ SMALL = pets.PETSConfig(
 NOISE = np.array([2e-5, 2e-5, 1e-4, 1e-4, 2e-3])  # m, m, m, m, rad: the known per-step noise std
 GAIN = np.array([[0, 0, 1.0, 0], [0, 0, 0, 1.0], [0.05, 0.05, 0, 0], [0, 0, 0.3, 0.3], [0.4, -0.4, 0, 0]])
 S0 = np.array([-0.1, 0.1, 0.0, 0.0, 0.0])
-OBS = planning.observation(prior.initial_window(S0), np.zeros(2), np.pi / 2)
+OBS = planning.observation(planning.initial_window(S0), np.zeros(2), np.pi / 2)
 
 
 def noisy_linear_episode(rng, n: int, damping: float = 0.9, gain=GAIN, noise=NOISE) -> dict:
@@ -258,10 +259,9 @@ def test_checkpoint_round_trip_and_refusals(trained, tmp_path):
         pets.load(tmp_path / "w.npz")
     with pytest.raises(baseline.BaselineCheckpointError, match="format is not"):
         baseline.load(path)
-    from boxjax import comparison
 
     with pytest.raises(baseline.BaselineCheckpointError, match="PETS"):
-        comparison.load_black_box("pets", str(tmp_path / "w.npz"))
+        blackbox.load_black_box("pets", str(tmp_path / "w.npz"))
     # arrays of another shape than the configuration says, refused by the array's name
     m = model.members
     wrong = dataclasses.replace(

@@ -12,8 +12,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from boxjax import geometry, massdist, planner, prior
+from boxjax import geometry, massdist, planning, prior
 from boxjax.config import DEFAULT
+from boxjax.planners import paper as planner
+from boxjax.planners import terms
 
 G = DEFAULT.gripper
 
@@ -97,11 +99,9 @@ def test_safe_random_rule_by_hand():
 def test_y_excess_band():
     """The belt midpoint reaches (p1_min + p2_min) / 2 .. (p1_max + p2_max) / 2 = -0.07 .. +0.07 m."""
     s = jnp.zeros(5)
-    assert float(planner.y_excess(s, DEFAULT, 0.01)) == pytest.approx(-0.06, abs=1e-6)
-    assert float(planner.y_excess(s.at[geometry.Y].set(0.08), DEFAULT, 0.01)) == pytest.approx(0.02, abs=1e-6)
-    assert float(planner.y_excess(s.at[geometry.Y].set(-0.05), DEFAULT, 0.0)) == pytest.approx(
-        -0.02, abs=1e-6
-    )
+    assert float(terms.y_excess(s, DEFAULT, 0.01)) == pytest.approx(-0.06, abs=1e-6)
+    assert float(terms.y_excess(s.at[geometry.Y].set(0.08), DEFAULT, 0.01)) == pytest.approx(0.02, abs=1e-6)
+    assert float(terms.y_excess(s.at[geometry.Y].set(-0.05), DEFAULT, 0.0)) == pytest.approx(-0.02, abs=1e-6)
 
 
 def test_action_set():
@@ -169,7 +169,7 @@ def test_plan_same_key_same_action_and_front_member():
 def test_plan_turns_towards_target_from_rest():
     # From rest the best turn towards +pi/2 drives belt 1 (y < 0) forward and belt 2 backward; the
     # front always holds that action when it was sampled (it has the best R1).
-    w = prior.initial_window(S0)
+    w = planning.initial_window(S0)
     _, info = PLAN(jax.random.key(3), MODEL, w, jnp.zeros(2), jnp.pi / 2)
     best = int(jnp.argmax(info.scores[:, 0]))
     assert bool(info.front[best])
@@ -190,7 +190,7 @@ def test_plan_keeps_box_on_belts():
 
 
 def test_plan_rejects_bad_options():
-    w = prior.initial_window(S0)
+    w = planning.initial_window(S0)
     with pytest.raises(ValueError, match="n_samples"):
         planner.plan(jax.random.key(0), MODEL, w, jnp.zeros(2), 1.0, DEFAULT, n_samples=500)
     with pytest.raises(ValueError, match="rule"):

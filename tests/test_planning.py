@@ -7,14 +7,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import massdist, planner, planning, prior
-from boxjax import sampling_planner as sp
+from boxjax import massdist, planning, prior
 from boxjax.config import DEFAULT
-from boxjax.controller import ControllerConfig, make_planner
+from boxjax.control.config import ControllerConfig
+from boxjax.planners import paper as planner
+from boxjax.planners import sampling as sp
+from boxjax.planners.registry import make_planner
 
 CFG = DEFAULT
 S0 = jnp.array([-0.10, 0.10, 0.0, 0.0, 0.0], jnp.float32)
-OBS = planning.observation(prior.initial_window(S0), jnp.zeros(2), jnp.pi / 2)
+OBS = planning.observation(planning.initial_window(S0), jnp.zeros(2), jnp.pi / 2)
 
 
 def _model(name="A"):
@@ -141,7 +143,8 @@ def test_a_mixture_of_one_setting_twice_plans_as_that_setting_alone():
 
 
 def test_controller_builds_a_mixture_of_priors_and_refuses_what_cannot_use_one():
-    from boxjax import controller, experiments
+    from boxjax import control as controller
+    from boxjax.experiments import evaluation as experiments
 
     mix = (prior.PriorParams(), prior.PriorParams(carriage_omega=30.0, slip_eps=0.02))
     ctrl = ControllerConfig(prior_params=mix)

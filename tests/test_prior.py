@@ -7,9 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import calibrate, geometry, massdist, planner, prior
-from boxjax.calibrate import ForceMap
+from boxjax import geometry, massdist, planning, prior
 from boxjax.config import DEFAULT
+from boxjax.planners import paper as planner
+from boxjax.prior import force_map as calibrate
+from boxjax.prior.force_map import ForceMap
 from boxjax.sim import make_env
 
 BOX, G = DEFAULT.box, DEFAULT.gripper
@@ -72,7 +74,7 @@ def test_paper_single_heavy_voxel_under_f1(row, torque_sign):
     # Friction (eqs. 11-13) at rest opposes the frictionless displacement, mu g per kg of V1 / V2.
     masses = _heavy(3, row)
     model = prior.make_prior(masses, _const_map(f1=20.0), BOX, G, variant="paper")
-    s_next, info = explain(model, prior.initial_window(REST), jnp.zeros(2), jnp.zeros(4))
+    s_next, info = explain(model, planning.initial_window(REST), jnp.zeros(2), jnp.zeros(4))
     assert np.allclose(np.asarray(info["forces"]), [20.0, 0, 0, 0])
     m = float(jnp.sum(masses))
     # The heavy voxel's column dominates the friction: beta ~ -mu g (2 kg) / M along x.
@@ -80,7 +82,7 @@ def test_paper_single_heavy_voxel_under_f1(row, torque_sign):
     assert beta_x == pytest.approx(-G.friction * G.gravity * 2.0 / m, rel=0.02)
     ax = 20.0 / m + beta_x
     # Centre of mass: r_c' = r_c + (F / M + beta) dt^2 / 2 (eq. 14 from rest; 0r''_c = 0).
-    rc = s_next[2:4] + calibrate.rot2(s_next[geometry.YAW]) @ model.com[:2] - model.com[:2]
+    rc = s_next[2:4] + geometry.rot2(s_next[geometry.YAW]) @ model.com[:2] - model.com[:2]
     assert float(rc[0]) == pytest.approx(0.5 * ax * DT**2, rel=1e-3)
     assert abs(float(rc[1])) < 1e-4
     # Torque of F1 about the centre of mass: -(mean y of S1 - y_c) F1 (eq. 8). Row 1 is S1's centroid
@@ -99,7 +101,7 @@ def test_paper_symmetric_uniform_box_opposite_forces():
     F = 40.0
     masses = _uniform()
     model = prior.make_prior(masses, _const_map(f1=F, f2=-F), BOX, G, variant="paper")
-    s_next, info = explain(model, prior.initial_window(REST), jnp.zeros(2), jnp.zeros(4))
+    s_next, info = explain(model, planning.initial_window(REST), jnp.zeros(2), jnp.zeros(4))
     s1, s2 = geometry.contact_masks(REST, BOX, G)
     yc = geometry.bottom_voxel_centres_xy(BOX)
     mean_y1 = float(np.sum(np.asarray(s1) * yc[..., 1]) / np.sum(np.asarray(s1)))
@@ -125,7 +127,7 @@ def test_slip_symmetric_uniform_box_opposite_belts(contact):
     # load-weighted |y| of each patch (~0.1 m) x 2, over I_zz, for the whole step.
     model = prior.make_prior(_uniform(), None, BOX, G, contact=contact)
     speed = jnp.array([0.2, -0.2])
-    s_next, info = explain(model, prior.initial_window(REST), speed, jnp.array([0.2, -0.2, 0, 0]))
+    s_next, info = explain(model, planning.initial_window(REST), speed, jnp.array([0.2, -0.2, 0, 0]))
     assert np.allclose(np.asarray(s_next[2:4]), 0.0, atol=1e-5)
     assert np.allclose(np.asarray(info["normal_load"]), 5.0 * G.gravity / 2, rtol=1e-3)
     f = np.asarray(info["forces"])
@@ -144,7 +146,9 @@ def test_slip_box_sticks_to_accelerating_belts(contact):
     a = G.belt_accel_limit
     for masses in (_uniform(), _heavy(6, 1, 2, m=4.0)):
         model = prior.make_prior(masses, None, BOX, G, contact=contact)
-        s_next, info = explain(model, prior.initial_window(REST), jnp.zeros(2), jnp.array([0.2, 0.2, 0, 0]))
+        s_next, info = explain(
+            model, planning.initial_window(REST), jnp.zeros(2), jnp.array([0.2, 0.2, 0, 0])
+        )
         assert float(s_next[geometry.X]) == pytest.approx(0.5 * a * DT**2, rel=0.03)
         assert float(info["com_velocity"][0]) == pytest.approx(a * DT, rel=0.03)
         assert abs(float(s_next[geometry.YAW])) < 2e-4
@@ -162,7 +166,7 @@ def test_slip_box_moving_with_belts_keeps_moving():
 def test_slip_position_step_drags_box_sideways():
     # Belt 2 moves +1 cm: P2 follows, the box moves +y but less than the belt (belt 1 holds it back).
     model = prior.make_prior(_uniform(), None, BOX, G)
-    s_next = one(model, prior.initial_window(REST), jnp.zeros(2), jnp.array([0.0, 0.0, 0.0, 0.01]))
+    s_next = one(model, planning.initial_window(REST), jnp.zeros(2), jnp.array([0.0, 0.0, 0.0, 0.01]))
     assert float(s_next[geometry.P2]) == pytest.approx(0.11)
     assert float(s_next[geometry.P1]) == pytest.approx(-0.1)
     assert 0.0 < float(s_next[geometry.Y]) < 0.01
@@ -171,7 +175,7 @@ def test_slip_position_step_drags_box_sideways():
 def test_belt_positions_clipped_to_range():
     model = prior.make_prior(_uniform(), None, BOX, G)
     s = jnp.array([G.p1_range[0] + 0.002, G.p2_range[1] - 0.001, 0.0, 0.0, 0.0])
-    s_next = one(model, prior.initial_window(s), jnp.zeros(2), jnp.array([0.0, 0.0, -0.01, 0.01]))
+    s_next = one(model, planning.initial_window(s), jnp.zeros(2), jnp.array([0.0, 0.0, -0.01, 0.01]))
     assert np.allclose(np.asarray(s_next[:2]), [G.p1_range[0], G.p2_range[1]])
 
 
@@ -365,9 +369,9 @@ def test_no_nan_and_finite_grads(setup):
     # gradient per setup, vmapped over the situations.
     windows = jnp.stack(
         [
-            prior.initial_window(_off_belt2()),
-            prior.initial_window(REST.at[geometry.X].set(0.9)),
-            prior.initial_window(REST),
+            planning.initial_window(_off_belt2()),
+            planning.initial_window(REST.at[geometry.X].set(0.9)),
+            planning.initial_window(REST),
             _moving_window(),
         ]
     )
@@ -419,24 +423,24 @@ def test_rollout_first_step_is_predict():
     traj = prior.rollout(model, w, b, a, 3)
     assert traj.shape == (3, 5)
     assert np.allclose(np.asarray(traj[0]), np.asarray(one(model, w, b, a)), atol=1e-6)
-    assert np.allclose(np.asarray(prior.next_belt_speed(model, b, a)), [0.08, -0.08])
+    assert np.allclose(np.asarray(planning.next_belt_speed(model, b, a)), [0.08, -0.08])
 
 
 def test_check_window():
     w = np.tile(np.asarray(REST), (3, 1))
-    assert prior.check_window(w).shape == (3, 5)
+    assert planning.check_window(w).shape == (3, 5)
     with pytest.raises(ValueError, match="at least 3"):
-        prior.check_window(w[:2])
+        planning.check_window(w[:2])
     with pytest.raises(ValueError, match=r"shape \(W, 5\)"):
-        prior.check_window(w[:, :4])
+        planning.check_window(w[:, :4])
     bad = w.copy()
     bad[1, 4] = np.nan
     with pytest.raises(ValueError, match="row 1 yaw"):
-        prior.check_window(bad)
+        planning.check_window(bad)
     with pytest.raises(ValueError, match="belt_speed"):
-        prior.check_window(w, belt_speed=[0.0, np.inf])
+        planning.check_window(w, belt_speed=[0.0, np.inf])
     with pytest.raises(ValueError, match="action"):
-        prior.check_window(w, action=[0.0, 0.0, 0.0])
+        planning.check_window(w, action=[0.0, 0.0, 0.0])
 
 
 def test_make_prior_rejects_bad_setup():

@@ -9,8 +9,8 @@ import re
 
 import pytest
 
-from boxjax import comparison, reproduce
 from boxjax.cli import main
+from boxjax.experiments import comparison, reproduce
 
 # The paper's own numbers (Tables 1 and §4.3 of Salehi & Doncieux 2024), written out here, not read from
 # boxjax, so that a wrong constant in the code fails the test.
@@ -102,7 +102,7 @@ def test_quick_report_has_every_table_and_figure(quick):
     if res["data_efficiency"]["measured"]:
         figures.append(res["data_efficiency"]["figure"])
     else:
-        assert "python -m boxjax.data_efficiency" in _section(md, "## Data efficiency")
+        assert "python -m boxjax.experiments.data_efficiency" in _section(md, "## Data efficiency")
     assert sorted(links) == sorted(figures)
     for link in links:
         assert not link.startswith("/"), "figures are linked relative to the report"
@@ -194,10 +194,10 @@ def test_non_empty_out_is_refused_without_force(tmp_path, capsys):
 @pytest.mark.parametrize(
     "module, attr, command",
     [
-        ("baseline", "shipped_path", "boxjax train-baseline --episodes 200"),
-        ("estimator_pipeline", "SHIPPED_WEIGHTS", "boxjax train-estimator"),
-        ("calibrate", "SHIPPED_CALIBRATION", "boxjax calibrate --transitions 2000"),
-        ("pets", "shipped_path", "python -m boxjax.pets_train"),
+        ("blackbox.baseline", "shipped_path", "boxjax train-baseline --episodes 200"),
+        ("estimator.shipped", "SHIPPED_WEIGHTS", "boxjax train-estimator"),
+        ("prior.force_map", "SHIPPED_CALIBRATION", "boxjax calibrate --transitions 2000"),
+        ("blackbox.pets", "shipped_path", "python -m boxjax.training.pets"),
     ],
 )
 def test_missing_weight_file_is_named_with_its_command(tmp_path, capsys, monkeypatch, module, attr, command):
@@ -235,7 +235,7 @@ def test_interrupted_run_leaves_no_report(tmp_path, monkeypatch):
     # a writer that fails after every part ran leaves no report either (both files are written last)
     _stub_parts(monkeypatch, "none")
     monkeypatch.setattr(reproduce, "_relative", lambda r, o: r)
-    from boxjax import report
+    from boxjax.experiments import report
 
     monkeypatch.setattr(report, "render", lambda r: (_ for _ in ()).throw(RuntimeError("interrupted")))
     with pytest.raises(RuntimeError, match="interrupted"):
@@ -290,22 +290,22 @@ def test_data_efficiency_curve_is_guarded(tmp_path, monkeypatch):
     not measured and names the command that measures it; the report says so too."""
     import sys
 
-    from boxjax import report
+    from boxjax.experiments import report
 
     monkeypatch.setattr(reproduce, "DATA_EFFICIENCY_JSON", tmp_path / "missing.json")
     res = reproduce.data_efficiency(str(tmp_path))
     assert not res["measured"] and "does not exist" in res["reason"]
     text = "\n".join(report._data_efficiency(res))
-    assert "Not measured" in text and "`python -m boxjax.data_efficiency`" in text
+    assert "Not measured" in text and "`python -m boxjax.experiments.data_efficiency`" in text
     bad = tmp_path / "bad.json"
     bad.write_text('{"H": [')
     monkeypatch.setattr(reproduce, "DATA_EFFICIENCY_JSON", bad)
     assert "cannot be read" in reproduce.data_efficiency(str(tmp_path))["reason"]
     bad.write_text('{"H": []}')
-    import boxjax
+    import boxjax.experiments
 
-    monkeypatch.setitem(sys.modules, "boxjax.data_efficiency", None)  # the module is not there
-    monkeypatch.delattr(boxjax, "data_efficiency", raising=False)
+    monkeypatch.setitem(sys.modules, "boxjax.experiments.data_efficiency", None)  # the module is not there
+    monkeypatch.delattr(boxjax.experiments, "data_efficiency", raising=False)
     res = reproduce.data_efficiency(str(tmp_path))
     assert not res["measured"] and "cannot be imported" in res["reason"]
     assert not list(tmp_path.glob("*.png"))

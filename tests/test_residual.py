@@ -1,4 +1,4 @@
-"""The learned residual on the physics prior (boxjax.residual)."""
+"""The learned residual on the physics prior (boxjax.prior.residual)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import controller, massdist, prior, residual
+from boxjax import control as controller
+from boxjax import massdist, planning, prior
 from boxjax.config import DEFAULT
+from boxjax.prior import residual
 
 CFG = DEFAULT
 
@@ -19,7 +21,7 @@ def _model(masses=None, **params):
 
 
 def _window(y=0.01, yaw=0.3):
-    return prior.initial_window(jnp.array([-0.1, 0.1, 0.0, y, yaw], jnp.float32))
+    return planning.initial_window(jnp.array([-0.1, 0.1, 0.0, y, yaw], jnp.float32))
 
 
 def _actions(key, horizon=10):
@@ -78,7 +80,7 @@ def _synthetic(key, n, truth_params, horizon=6):
     s0[:, 0], s0[:, 1] = -0.1, 0.1
     s0[:, 3] = rng.uniform(-0.02, 0.02, n)
     s0[:, 4] = rng.uniform(0, 1.5, n)
-    window = np.repeat(s0[:, None], prior.MIN_WINDOW, axis=1)
+    window = np.repeat(s0[:, None], planning.MIN_WINDOW, axis=1)
     acts = np.concatenate(
         [rng.uniform(-0.12, 0.12, (n, horizon, 2)), rng.uniform(-0.01, 0.01, (n, horizon, 2))], axis=2
     ).astype(np.float32)

@@ -8,9 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from boxjax import baseline, geometry, massdist, planner, planning, prior
-from boxjax import sampling_planner as sp
+from boxjax import geometry, massdist, planning, prior
+from boxjax.blackbox import baseline
 from boxjax.config import DEFAULT
+from boxjax.planners import sampling as sp
+from boxjax.planners import terms
 
 CFG = DEFAULT
 G = CFG.gripper
@@ -22,7 +24,7 @@ def _model(name="uniform"):
 
 
 S0 = jnp.array([-0.10, 0.10, 0.0, 0.0, 0.0], jnp.float32)
-WINDOW = prior.initial_window(S0)
+WINDOW = planning.initial_window(S0)
 PLAN = sp.make_sampling_planner(CFG, OPTS)
 
 
@@ -51,7 +53,7 @@ def test_rollout_sequence_feeds_predictions_back_step_by_step():
                     np.asarray(s), np.asarray(prior.predict(model, w, b, a)), atol=1e-7
                 )
             np.testing.assert_allclose(seq[k], np.asarray(s), atol=1e-5)  # m, rad: float32 (scan vs eager)
-            w, b = jnp.concatenate([w[1:], s[None]]), prior.next_belt_speed(model, b, a)
+            w, b = jnp.concatenate([w[1:], s[None]]), planning.next_belt_speed(model, b, a)
         np.testing.assert_allclose(
             seq[0], np.asarray(prior.predict(model, WINDOW, jnp.zeros(2), acts[0])), atol=1e-6
         )
@@ -240,7 +242,7 @@ def test_turn_end_excess_hand_computed_and_invariant_under_a_turn_about_the_cent
     off = s.at[geometry.Y].set(0.03)
     np.testing.assert_allclose(
         float(sp.turn_end_excess(off, jnp.zeros(2), target, CFG, 0.01)),
-        float(planner.y_excess(off, CFG, 0.01)),
+        float(terms.y_excess(off, CFG, 0.01)),
         atol=1e-7,
     )
 

@@ -11,17 +11,19 @@ import jax
 import pytest
 
 from boxjax import estimator as E
-from boxjax import estimator_pipeline as P
-from boxjax import explore, massdist
+from boxjax import massdist
 from boxjax.config import DEFAULT, BoxConfig
+from boxjax.estimator import explore
+from boxjax.estimator import shipped as S
 from boxjax.sim import make_env
+from boxjax.training import estimator as P
 
 CFG = DEFAULT
 
 
 @pytest.fixture(scope="module")
 def reported():
-    with open(P.SHIPPED_REPORT) as f:
+    with open(S.SHIPPED_REPORT) as f:
         return json.load(f)
 
 
@@ -32,12 +34,16 @@ def fresh():
 
 
 def test_shipped_weights_provenance(reported):
-    assert os.path.getsize(P.SHIPPED_WEIGHTS) <= 10 * 2**20
-    model = P.default_estimator(CFG)
-    assert model is P.default_estimator(CFG)  # loaded once
+    assert os.path.getsize(S.SHIPPED_WEIGHTS) <= 10 * 2**20
+    model = S.default_estimator(CFG)
+    assert model is S.default_estimator(CFG)  # loaded once
     assert tuple(model.box.grid) == tuple(CFG.box.grid) and model.n_steps == explore.N_STEPS
     prov = model.provenance
-    assert prov["trained_by"] == "boxjax.estimator_pipeline.train_estimator"
+    # the shipped H was trained when the pipeline was boxjax.estimator_pipeline (renamed in the 0.1 layout)
+    assert prov["trained_by"] in (
+        "boxjax.training.estimator.train_estimator",
+        "boxjax.estimator_pipeline.train_estimator",
+    )
     assert prov["seed"] == reported["training"]["seed"] and prov["n_boxes"] == reported["training"]["boxes"]
     assert prov["config"]["box"]["grid"] == list(CFG.box.grid)
     assert model.cfg == E.EstimatorConfig.from_dict(reported["training"]["training"]["estimator_config"])
@@ -57,7 +63,7 @@ def test_shipped_weights_reach_the_reported_accuracy(fresh, reported):
 
 def test_named_boxes_hazard_decisions():
     """D (all mass over the right belt) is refused; uniform, A, B, C are not; masses within 10 %."""
-    model = P.default_estimator(CFG)
+    model = S.default_estimator(CFG)
     env = make_env(CFG, "native")
     for name in ("uniform", "A", "C", "D"):
         dist = massdist.named(name, CFG.box)
@@ -69,19 +75,19 @@ def test_named_boxes_hazard_decisions():
 
 
 def test_shipped_weights_refuse_bad_input(tmp_path):
-    model = P.default_estimator(CFG)
+    model = S.default_estimator(CFG)
     with pytest.raises(E.CheckpointError, match="grid"):
-        E.load(P.SHIPPED_WEIGHTS, expected_box_config=BoxConfig(grid=(12, 12, 4)))
+        E.load(S.SHIPPED_WEIGHTS, expected_box_config=BoxConfig(grid=(12, 12, 4)))
     with pytest.raises(E.CheckpointError, match="grid"):
-        P.default_estimator(CFG.replace(box=BoxConfig(grid=(12, 12, 4))))
+        S.default_estimator(CFG.replace(box=BoxConfig(grid=(12, 12, 4))))
     cut = tmp_path / "cut.npz"
-    cut.write_bytes(P.SHIPPED_WEIGHTS.read_bytes()[: 2**20])
+    cut.write_bytes(S.SHIPPED_WEIGHTS.read_bytes()[: 2**20])
     with pytest.raises(E.CheckpointError, match="corrupt|truncated"):
         E.load(cut)
     with pytest.raises(E.CheckpointError, match="corrupt|truncated"):
         P.evaluate_estimator(0, 2, cut, CFG, progress=False)
     copy = tmp_path / "copy.npz"
-    shutil.copyfile(P.SHIPPED_WEIGHTS, copy)
+    shutil.copyfile(S.SHIPPED_WEIGHTS, copy)
     assert E.load(copy, expected_box_config=CFG.box).cfg == model.cfg
     # A trajectory of the wrong length or with NaN: a clear error, never a silent prediction.
     traj = jax.numpy.zeros((explore.N_STEPS, explore.N_TRAJ_COLUMNS))

@@ -102,3 +102,39 @@ def test_mjx_agreement_report_all_named():
         pos = np.hypot(*(n["s"][i, :, 2:4] - m["s"][i, :, 2:4]).T).max()
         yaw = np.degrees(np.abs(n["s"][i, :, 4] - m["s"][i, :, 4]).max())
         print(f"{name:>8}: {pos * 1e3:8.3f} mm {yaw:7.3f} deg")
+
+
+def _mappings() -> int:
+    with open("/proc/self/maps") as f:
+        return sum(1 for _ in f)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/maps"), reason="counts the process's memory mappings")
+def test_the_mjx_env_stepped_one_call_at_a_time_compiles_once():
+    """The Env API as the README shows it, on MJX: `env.step` in a Python loop compiles on the first call
+    and reuses that program (a step that re-traced per call took 8-13 s and, after ~30 steps, exhausted
+    the process's memory mappings with compiled code)."""
+    import time
+
+    import jax
+
+    from boxjax.sim import make_env
+
+    env = make_env(CFG, backend="mjx")
+    assert make_env(CFG, backend="mjx") is env  # one env per config: its compiled step is shared
+    state = env.reset(jax.random.PRNGKey(0), massdist.named("A", CFG.box))
+    action = [0.15, -0.15, 0.0, 0.0]
+    for _ in range(3):  # the first call compiles
+        state = env.step(state, action)
+    maps, times = _mappings(), []
+    for _ in range(47):
+        t0 = time.perf_counter()
+        state = env.step(state, action)
+        jax.block_until_ready(state.s)
+        times.append(time.perf_counter() - t0)
+    assert int(state.t) == 50 and np.isfinite(np.asarray(state.s)).all()
+    assert max(times) < 1.0, f"a later step took {max(times):.2f} s: it compiled again"
+    assert env._step_jit._cache_size() == 1
+    assert _mappings() - maps < 50, "compiled code keeps growing with every step"
+    with pytest.raises(ValueError):
+        env.step(state, [0.1, np.nan, 0.0, 0.0])

@@ -4,10 +4,11 @@ import jax
 import numpy as np
 import pytest
 
-from boxjax import explore, massdist, planning, prior
-from boxjax import simulator_planner as simp
+from boxjax import massdist, planning, prior
 from boxjax.config import DEFAULT as CFG
-from boxjax.sampling_planner import SamplingOptions
+from boxjax.estimator import explore
+from boxjax.planners import simulator as simp
+from boxjax.planners.sampling import SamplingOptions
 from boxjax.sim import make_env
 
 SMALL = simp.SimulatorOptions(sampling=SamplingOptions(n_samples=6, horizon=4, gradient_steps=0), nthread=2)
@@ -25,7 +26,7 @@ def env_state():
 
 
 def _obs(state):
-    window = np.tile(np.asarray(state.s, np.float32), (prior.MIN_WINDOW, 1))
+    window = np.tile(np.asarray(state.s, np.float32), (planning.MIN_WINDOW, 1))
     return planning.observation(window, state.belt_speed, state.target_yaw, state)
 
 

@@ -48,7 +48,7 @@ Policy = Callable[[State, jax.Array], np.ndarray]  # (state, key) -> action (4,)
 
 def run_episode(env, state: State, policy: Policy, key, max_steps: int) -> tuple[State, EpisodeTrace]:
     """Step `env` with `policy` until the episode ends or `max_steps` control steps were taken."""
-    step = env.step_checked if hasattr(env, "step_checked") else env.step
+    step = env.step
     rows = [state]
     actions = []
     t0 = time.perf_counter()

@@ -1,9 +1,9 @@
 """MJX backend: the same gripper, jittable, vmappable over boxes and shardable across devices.
 
 Per-box model fields (mass, centre of mass, inertia and MuJoCo's derived constants) travel inside the
-State (`state.model`, a dict of arrays), so `jax.vmap(env.step)` over a batch of states simulates a batch
+State (`state.model`, a dict of arrays), so `jax.vmap(env.pure_step)` over a batch of states simulates a batch
 of different boxes with no extra `in_axes` bookkeeping. The fields are computed on the host from a native
-model per box after `mj_setConst` (DESIGN.md pitfalls: MJX does not recompute derived constants).
+model per box after `mj_setConst` (docs/design.md pitfalls: MJX does not recompute derived constants).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from boxjax import massdist
 from boxjax.config import Config
 from boxjax.sim import core, model
-from boxjax.sim.native import _as_list, recentre_belts
+from boxjax.sim.native import _as_list, initial_qpos, recentre_belts
 
 
 def _mjx():
@@ -32,10 +32,12 @@ def _mjx():
 
 
 class MjxEnv:
-    """The gripper on MJX. `init` and `step` are pure and jittable; jit and vmap them from outside.
+    """The gripper on MJX, with the Env API of `NativeEnv`: `reset(key, dist)` and `step(state, action)`
+    (the action checked on the host, the step compiled once per env and reused: call it in a loop).
 
-    reset(key, dist) is a host-side convenience for one box (it computes the box's model fields with
-    native MuJoCo); for batches use `box_params` per box + `stack` + `jax.vmap(env.init)`.
+    The pure, jittable and vmappable functions are `pure_init(params, key)` and `pure_step(state, action)`
+    (and `physics_step`, which ignores termination): jit, vmap and scan them from outside. For batches
+    use `box_params` per box + `stack` + `jax.vmap(env.pure_init)`.
     """
 
     backend = "mjx"
@@ -45,8 +47,8 @@ class MjxEnv:
         self._template = model.template(cfg)
         self.ids = model.ids(self._template)
         self.mx = _mjx().put_model(self._template, impl="jax")
-        self._init_jit = jax.jit(self.init)
-        self._step_jit = jax.jit(self.step)
+        self._init_jit = jax.jit(self.pure_init)
+        self._step_jit = jax.jit(self.pure_step)
 
     # -- host-side helpers -------------------------------------------------------------------------
     def box_params(self, dist: massdist.MassDistribution) -> dict:
@@ -56,17 +58,21 @@ class MjxEnv:
     def reset(self, key, dist: massdist.MassDistribution) -> core.State:
         return self._init_jit(self.box_params(dist), key)
 
-    def step_checked(self, state: core.State, action) -> core.State:
-        """Jitted `step` for one world, with host-side action validation (raises ValueError)."""
+    def step(self, state: core.State, action) -> core.State:
+        """Apply `action` (4,) = (v1, v2, dp1, dp2) for one control step: `pure_step`, compiled once, with
+        host-side action validation. A finished episode stays as it was.
+
+        Raises:
+          ValueError: the action has the wrong shape or is not finite.
+        """
         return self._step_jit(state, jnp.asarray(core.check_action(action), dtype=jnp.float32))
 
     # -- pure functions ----------------------------------------------------------------------------
     def _model(self, params: dict):
         return self.mx.tree_replace(params)
 
-    def init(self, params: dict, key) -> core.State:
+    def pure_init(self, params: dict, key) -> core.State:
         """Box at rest on the belts (pure; `params` from `box_params`)."""
-        from boxjax.sim.native import initial_qpos
 
         mjx = _mjx()
         m = self._model(params)
@@ -74,7 +80,7 @@ class MjxEnv:
         p0 = jnp.asarray(self.cfg.gripper.belt_y0, dtype=jnp.float32)
         d = mjx.make_data(m)
         ctrl = d.ctrl.at[model.CARRIAGE1_P].set(p0[0]).at[model.CARRIAGE2_P].set(p0[1])
-        # A strongly typed time: a weakly typed one makes MJX compile the step twice (DESIGN.md).
+        # A strongly typed time: a weakly typed one makes MJX compile the step twice (docs/design.md).
         # No mjx.forward here: the observation needs only qpos / qvel, and every step runs forward itself.
         d = d.replace(qpos=qpos, ctrl=ctrl, time=jnp.zeros((), jnp.float32))
         yaw0 = core.planar_state(self.ids, d.qpos)[4]
@@ -114,8 +120,8 @@ class MjxEnv:
         )
         return state._replace(physics=d, p_target=p_target.astype(jnp.float32), t=t, clipped=clipped, **obs)
 
-    def step(self, state: core.State, action) -> core.State:
-        """Apply `action` (4,) for one control step; a finished episode stays as it was."""
+    def pure_step(self, state: core.State, action) -> core.State:
+        """Apply `action` (4,) for one control step; a finished episode stays as it was (pure, unchecked)."""
         return core.freeze_if_done(state, self.physics_step(state, action))
 
 
@@ -223,7 +229,7 @@ def rollout(cfg: Config, dists, actions, *, env: MjxEnv | None = None, key=None)
     dists = dists + [dists[-1]] * (Bp - B)
     acts = np.concatenate([acts, np.repeat(acts[-1:], Bp - B, axis=0)])
     params = stack([env.box_params(d) for d in dists])
-    states = jax.vmap(env.init)(params, jax.random.split(key, Bp))
+    states = jax.vmap(env.pure_init)(params, jax.random.split(key, Bp))
     sharding = batch_sharding(Bp)
     acts = jnp.asarray(acts)
     if sharding is not None:

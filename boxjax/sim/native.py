@@ -85,7 +85,7 @@ class NativeEnv:
 
 
 class NativeBatch:
-    """B worlds on native MuJoCo stepped together, for closed loops over many boxes (`boxjax.batch`).
+    """B worlds on native MuJoCo stepped together, for closed loops over many boxes (`boxjax.control.batch`).
 
     Each box keeps its own MjModel and MjData and is stepped by `mj_step` exactly as `NativeEnv.step`
     steps it (mjSTATE_INTEGRATION is all the integrator reads, so a persistent MjData and NativeEnv's

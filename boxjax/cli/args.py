@@ -1,0 +1,274 @@
+"""Every `boxjax` option either acts or is refused: one mechanism for all commands.
+
+An option is declared with `option(parser, "--flag", default=..., used_by=(...), check=...)`. Its argparse
+default is None, so after parsing the CLI knows exactly which options the user gave; `resolve(args)` then
+fills in the defaults, refuses (ValueError -> exit 2) a given option whose conditions do not hold, naming
+who uses it ("--samples is an option of --planner paper; it does nothing with --planner sampling"), and
+checks its value ("--samples must be >= 1, got -3").
+
+A condition is a function args -> None (holds) or the rest of the refusal's sentence: `when(dest, *values)`
+(the option is used only when another option has one of these values), `without(dest, why)` (not used
+when another option is given), `needs(dest)` (used only when another option is given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+Condition = Callable[[argparse.Namespace], "str | None"]
+
+
+@dataclass(frozen=True)
+class Option:
+    flag: str
+    dest: str
+    default: Any
+    used_by: tuple[Condition, ...] = ()
+    check: tuple[Callable[[Any], bool], str] | None = None
+
+
+def _flag(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def when(dest: str, *values, owner: str | None = None) -> Condition:
+    """Used only when option `dest` has one of `values` (after defaults are filled in); `owner` names
+    who uses it in the refusal ("the paper planner")."""
+
+    def cond(args):
+        have = getattr(args, dest)
+        if have in values:
+            return None
+        setting = f"{_flag(dest)} {' / '.join(str(v) for v in values)}"
+        who = setting if owner is None else f"{owner} ({setting})"
+        return f"is an option of {who}; it does nothing with {_flag(dest)} {have}"
+
+    return cond
+
+
+def without(dest: str, why: str) -> Condition:
+    """Not used when option `dest` is given; `why` says what happens instead."""
+
+    def cond(args):
+        return None if getattr(args, dest) is None else f"does nothing with {_flag(dest)}: {why}"
+
+    return cond
+
+
+def needs(dest: str, what: str = "") -> Condition:
+    """Used only together with option `dest`."""
+
+    def cond(args):
+        return None if getattr(args, dest) is not None else f"does nothing without {_flag(dest)}{what}"
+
+    return cond
+
+
+def at_least(n) -> tuple[Callable[[Any], bool], str]:
+    return (lambda v: v >= n), f">= {n}"
+
+
+def option(
+    parser: argparse.ArgumentParser,
+    flag: str,
+    *,
+    default: Any = None,
+    used_by: tuple[Condition, ...] = (),
+    check: tuple[Callable[[Any], bool], str] | None = None,
+    help: str | None = None,  # noqa: A002 (argparse's name)
+    **kwargs,
+) -> None:
+    """Declare `flag` on `parser` (a sub-command's parser); the declarations travel in its namespace."""
+    dest = kwargs.pop("dest", flag.lstrip("-").replace("-", "_"))
+    if help is not None and default is not None and default is not False:
+        help = f"{help} (default {default})"
+    parser.add_argument(flag, dest=dest, default=None, help=help, **kwargs)
+    declared = parser.get_default("_options")
+    if declared is None:
+        declared = []
+        parser.set_defaults(_options=declared)
+    declared.append(Option(flag, dest, default, tuple(used_by), check))
+
+
+def given(args: argparse.Namespace) -> set[str]:
+    """The dests of the options the user gave (after `resolve`)."""
+    return getattr(args, "_given", set())
+
+
+def resolve(args: argparse.Namespace) -> argparse.Namespace:
+    """Fill in defaults, then refuse unused options and bad values (ValueError naming the option)."""
+    opts = getattr(args, "_options", None) or []
+    args._given = {o.dest for o in opts if getattr(args, o.dest) is not None}
+    for o in opts:
+        if o.dest not in args._given:
+            setattr(args, o.dest, o.default)
+    for o in opts:
+        if o.dest not in args._given:
+            continue
+        for cond in o.used_by:
+            why = cond(args)
+            if why is not None:
+                raise ValueError(f"{o.flag} {why}")
+        value = getattr(args, o.dest)
+        if o.check is not None and not o.check[0](value):
+            raise ValueError(f"{o.flag} must be {o.check[1]}, got {value}")
+    return args
+
+
+def emit(summary: dict, as_json: bool) -> None:
+    """The summary: one JSON line (--json), or one `key: value` line per field."""
+    import json
+
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    else:
+        for k, v in summary.items():
+            sys.stdout.write(f"  {k:>22}: {v}\n")
+    sys.stdout.flush()
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Options several commands share.
+
+
+def config_option(p: argparse.ArgumentParser, *used_by: Condition) -> None:
+    option(
+        p,
+        "--config",
+        metavar="FILE.toml",
+        used_by=used_by,
+        help="box, gripper and task parameters from a TOML file (`boxjax config` prints the defaults)",
+    )
+
+
+def box_options(p: argparse.ArgumentParser, default: str | None, *used_by: Condition) -> None:
+    """--distribution NAME or --box FILE: the box of one episode."""
+    from boxjax.massdist import NAMES
+
+    option(
+        p,
+        "--distribution",
+        default=default,
+        choices=NAMES,
+        used_by=(without("box", "the box comes from the file"), *used_by),
+        help="a named box",
+    )
+    option(
+        p,
+        "--box",
+        metavar="FILE",
+        used_by=used_by,
+        help="your own box: .npz (occupancy, total_mass) or .json mixture spec (`boxjax box --help`)",
+    )
+
+
+def output_options(p: argparse.ArgumentParser, plot_help: str, animate: bool = True) -> None:
+    option(p, "--plot", metavar="FILE.png", help=plot_help)
+    if animate:
+        option(
+            p,
+            "--animate",
+            metavar="FILE.gif",
+            help="write a top-view animation of the episode (belts, box, centre of mass, corridor)",
+        )
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
+
+
+def guard_value(text: str) -> float:
+    """--explore-guard: a fraction of the balance limit in (0, 1), or "off" (0.0, which the controller
+    config reads as None)."""
+    if text.strip().lower() == "off":
+        return 0.0
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a fraction of the balance limit or 'off', got {text!r}"
+        ) from None
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected a fraction of the balance limit in (0, 1) or 'off', got {text!r}"
+        )
+    return value
+
+
+def planner_options(
+    p: argparse.ArgumentParser,
+    *used_by: Condition,
+    calibration: bool = True,
+    prior: tuple[Condition, ...] = (),
+) -> None:
+    """--planner and the options that belong to one planner each (refused with another); --variant of the
+    physics prior (with the extra conditions `prior`), and --calibration (the paper prior's force map)
+    where the command can pass one to the controller."""
+    from boxjax.planners.paper import RULES
+    from boxjax.planners.registry import PLANNERS
+
+    option(
+        p,
+        "--planner",
+        default="sampling",
+        choices=PLANNERS,
+        used_by=used_by,
+        help="paper: one-step Pareto random shooting (§2.3); sampling: predictive sampling over sequences; "
+        "simulator: privileged reference that plans with MuJoCo itself (oracle estimator only, slow)",
+    )
+    paper = when("planner", "paper", owner="the paper planner")
+    option(p, "--rule", default="random", choices=RULES, used_by=(*used_by, paper), help="Pareto-front rule")
+    option(
+        p,
+        "--samples",
+        type=int,
+        default=50,
+        used_by=(*used_by, paper),
+        check=at_least(1),
+        help="actions scored per control step",
+    )
+    option(
+        p,
+        "--horizon",
+        type=int,
+        default=1,
+        used_by=(*used_by, paper),
+        check=at_least(1),
+        help="prediction steps per candidate",
+    )
+    option(
+        p,
+        "--gradient-steps",
+        type=int,
+        used_by=(*used_by, when("planner", "sampling", owner="the sampling planner")),
+        check=at_least(0),
+        help="Adam steps through the prior on the chosen sequence (default 5; 0: none)",
+    )
+    option(
+        p,
+        "--explore-guard",
+        type=guard_value,
+        default=0.875,
+        metavar="F|off",
+        used_by=used_by,
+        help="a box whose balance error passes this fraction of the balance limit during the fixed "
+        "exploration is re-centred and refused, not lost; off: the paper's fixed exploration",
+    )
+    option(
+        p,
+        "--variant",
+        default="slip",
+        choices=("slip", "paper"),
+        used_by=(*used_by, *prior),
+        help="physics prior: slip (friction on the belt-box slip) or paper (calibrated force map, eqs. 4-14)",
+    )
+    if not calibration:
+        return
+    option(
+        p,
+        "--calibration",
+        metavar="FILE.npz",
+        used_by=(*used_by, *prior, when("variant", "paper")),
+        help="action -> force map of `boxjax calibrate` for the paper prior (default: the shipped one)",
+    )

@@ -1,0 +1,108 @@
+"""The controller's settings: how it explores, which planner and model it plans with."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from boxjax import prior
+from boxjax.planners import paper as planner
+from boxjax.planners import registry
+from boxjax.planners.registry import PLANNERS  # noqa: F401 (the built-in planner names, for the CLI)
+
+BELIEFS = ("mean", "ensemble")  # the planner's model: on the estimate, or on each of H's members
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerConfig:
+    """How the MPC plans (paper §2.3, §4 defaults)."""
+
+    n_samples: int = 50  # actions scored per control step (paper N_a = 50)
+    rule: str = "random"  # selection on the Pareto front (planner.RULES); the paper picks at random
+    velocity: str = "increment"  # how the action set's velocity columns are read (planner.VELOCITY_MODES)
+    horizon: int = 1  # prediction steps per candidate (1 = the paper's one-step prediction)
+    variant: str = "slip"  # physics prior (prior.VARIANTS)
+    brake_steps: int = 0  # predicted braking steps appended to each candidate's safety check
+    speed_cap: float | None = None  # m/s, |belt speed| the planner may command (None: hardware limit)
+    safe_balance: float | None = None  # m, for the "lexicographic" rule (None: half the balance limit)
+    y_margin: float | None = None  # m, paper planner: keep the box centre inside the carriages' reach
+    explore: bool = True  # run the fixed exploration phase first (always needed by a learned estimator)
+    # The exploration guard (`explore.Guarded`), a fraction of the balance limit: a box whose balance error
+    # passes it during the fixed exploration is re-centred and refused instead of being lost. None: the
+    # paper's fixed sequence whatever happens. Models given to `run_episode` (W, PETS: no refusal) always
+    # explore without it. 0.875 (3.5 of 4 cm) was chosen over 0.75 on development boxes (README, "Hazard
+    # decisions").
+    explore_guard: float | None = 0.875
+    planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
+    sampling: Any = None  # sampling_planner.SamplingOptions (None: its defaults)
+    simulator: Any = None  # simulator_planner.SimulatorOptions (None: its defaults)
+    adapt_every: int = 0  # MPC steps between online adaptations of a learned model (0: none; paper: 20)
+    # Gain of the drift observer (planning.DriftCorrected; 0: off): each step the model's prediction of
+    # the state just reached is compared with it and the per-step drift corrected by gain x the error.
+    observer_gain: float = 0.0
+    # What the planner's model is built on: "mean" (default) the estimator's one belief; "ensemble" one
+    # physics prior per member of H's ensemble (`estimator.predict_members`) in a `planning.Ensemble`, the
+    # sampling planner scoring each candidate over the members (`SamplingOptions.particle_risk`).
+    belief: str = "mean"
+    # The physics prior's settings (prior.PriorParams: substeps, friction regularisation, carriage
+    # response, ...; None: the defaults of `variant`). Its variant must be `variant`. A tuple of several
+    # plans over a mixture of priors (`planning.Mixture`: one particle per setting, scored by
+    # `SamplingOptions.particle_risk`; the sampling planner and belief="mean" only).
+    prior_params: Any = None
+    # A learned residual on the physics prior (`boxjax.prior.residual`): the path of its checkpoint, or None
+    # (the prior alone). The "slip" prior with belief="mean" and one prior setting only.
+    residual: str | None = None
+
+    def __post_init__(self):
+        if self.explore_guard is not None and not 0 < self.explore_guard < 1:
+            raise ValueError(
+                "explore_guard must be a fraction of the balance limit in (0, 1) or None, got "
+                f"{self.explore_guard}"
+            )
+        if self.planner not in registry.available():
+            raise ValueError(f"unknown planner {self.planner!r}; choose one of {registry.available()}")
+        if self.rule not in planner.RULES:
+            raise ValueError(f"unknown selection rule {self.rule!r}; choose one of {planner.RULES}")
+        if self.belief not in BELIEFS:
+            raise ValueError(f"unknown belief {self.belief!r}; choose one of {BELIEFS}")
+        if self.belief == "ensemble" and self.planner != "sampling":
+            raise ValueError("belief='ensemble' plans over H's members with the sampling planner only")
+        if self.variant not in prior.VARIANTS:
+            raise ValueError(f"unknown prior variant {self.variant!r}; choose one of {prior.VARIANTS}")
+        if self.prior_params is not None:
+            mixture = isinstance(self.prior_params, tuple)
+            for p in self.prior_params if mixture else (self.prior_params,):
+                if not isinstance(p, prior.PriorParams):
+                    raise ValueError(
+                        f"prior_params must be a prior.PriorParams or a tuple of them, got {type(p).__name__}"
+                    )
+                if p.variant != self.variant:
+                    raise ValueError(
+                        f"prior_params is of the {p.variant!r} variant but the controller's "
+                        f"variant is {self.variant!r}"
+                    )
+            if mixture and (
+                len(self.prior_params) < 2 or self.planner != "sampling" or self.belief != "mean"
+            ):
+                raise ValueError(
+                    "a mixture of priors (prior_params as a tuple) needs at least two settings, the "
+                    "sampling planner and belief='mean'"
+                )
+
+        if self.residual is not None:
+            settings = self.prior_settings()
+            if (
+                self.variant != "slip"
+                or isinstance(settings, tuple)
+                or not settings.carry_velocity
+                or self.belief != "mean"
+                or self.planner == "simulator"
+            ):
+                raise ValueError(
+                    "a residual on the prior needs the 'slip' variant with carry_velocity, one prior "
+                    "setting, belief='mean' and a planner that plans with the model (not 'simulator')"
+                )
+
+    def prior_settings(self) -> prior.PriorParams | tuple:
+        """The PriorParams the planner's prior is built with (a tuple: a mixture of priors)."""
+        return self.prior_params if self.prior_params is not None else prior.PriorParams(variant=self.variant)

@@ -1,0 +1,231 @@
+"""One controlled episode: explore -> estimate -> refuse if hazardous -> plan and act until done.
+
+The estimator is a slot: "oracle" (the true mass distribution, issue 3) or a trained H (issue 4). Either
+way the controller believes in ONE mass distribution after the exploration phase, checks it against the
+paper's hazard rule (§4.2) and either refuses, saying why in physical terms, or turns the box with the
+physics-prior random-shooting MPC (`planner`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from functools import lru_cache
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import massdist, planning, task
+from boxjax.config import Config
+from boxjax.control.config import ControllerConfig
+from boxjax.control.models import planning_model
+from boxjax.estimator import com_error_cm, explore
+from boxjax.estimator.belief import decide
+from boxjax.planners.registry import make_planner
+from boxjax.sim import make_env
+from boxjax.sim.episode import EpisodeTrace
+
+
+class EpisodeResult(NamedTuple):
+    """What a controlled episode did. `summary` is plain data (the CLI's JSON)."""
+
+    summary: dict
+    trace: EpisodeTrace
+    belief: massdist.MassDistribution | None  # None when the box was lost while exploring
+    truth: massdist.MassDistribution
+    plan_ms: np.ndarray  # (n_plans,) wall milliseconds per planning call (after the first)
+
+
+@lru_cache(maxsize=8)
+def env_for(cfg: Config, backend: str):
+    """One env per (config, backend), so its jitted pieces compile once, not once per episode."""
+    return make_env(cfg, backend)
+
+
+def _episode_data(rows, actions) -> dict:
+    """The episode so far as arrays: s (T+1, 5), belt_speed (T+1, 2), actions (T, 4)."""
+    return {
+        "s": np.stack([np.asarray(r.s) for r in rows]),
+        "belt_speed": np.stack([np.asarray(r.belt_speed) for r in rows]),
+        "actions": np.asarray(actions, np.float64).reshape(-1, 4),
+    }
+
+
+def first_window(s) -> list:
+    """The planner's first state window: the last planning.MIN_WINDOW states of `s` (T+1, 5), the oldest
+    repeated when the episode is shorter (no exploration)."""
+    window = list(np.asarray(s)[-planning.MIN_WINDOW :])
+    while len(window) < planning.MIN_WINDOW:
+        window.insert(0, window[0])
+    return window
+
+
+def timed_calls(plan_ms: list) -> list:
+    """The planning times worth a median: all but the first call, which compiles (unless it is alone)."""
+    return plan_ms[1:] if len(plan_ms) > 1 else plan_ms
+
+
+def episode_summary(
+    cfg: Config,
+    truth: massdist.MassDistribution,
+    final: dict,
+    est: dict,
+    belief,
+    why: str | None,
+    *,
+    n_explore: int,
+    lost_exploring: bool,
+    wall_s: float,
+    plan_ms: list,
+    adapt_s: float = 0.0,
+    adaptations: int = 0,
+    estimator: Any = "oracle",
+) -> dict:
+    """An episode's summary (plain data; the CLI's JSON) from the final state's `State.summary()`."""
+    aborted = why is not None
+    timed = timed_calls(plan_ms)
+    summary = {
+        "success": bool(final["success"]) and not aborted,
+        "aborted": aborted,
+        "abort_reason": why,
+        "failed_reason": None if aborted else final["failed_reason"],
+        "steps": final["steps"],
+        "exploration_steps": n_explore,
+        "max_balance_error_m": final["max_balance_error_m"],
+        "final_yaw_error_rad": final["final_yaw_error_rad"],
+        "wall_s": wall_s,
+        "plan_ms_median": statistics.median(timed) if timed else None,
+        "truth_hazardous": bool(massdist.is_hazardous(truth, cfg.box)),
+        "lost_exploring": lost_exploring,
+        "adapt_s": adapt_s,
+        "adaptations": adaptations,
+    }
+    if estimator != "oracle" and belief is not None:
+        summary["iou"] = float(massdist.iou(belief.occupancy, truth.occupancy))
+        summary["mass_error_kg"] = float(belief.total_mass - truth.total_mass)
+        summary["com_error_cm"] = float(com_error_cm(belief, truth, cfg.box))
+        if est.get("hazard_prob") is not None:
+            summary["hazard_prob"] = float(est["hazard_prob"])
+    if not aborted and not final["done"]:
+        summary["failed_reason"] = task.REASONS[task.STEP_CAP]
+    return summary
+
+
+def run_episode(
+    cfg: Config,
+    truth: massdist.MassDistribution,
+    key,
+    *,
+    estimator: Any = "oracle",
+    ctrl: ControllerConfig = ControllerConfig(),
+    backend: str = "native",
+    force_map=None,
+    max_steps: int | None = None,
+    model: Any = None,
+    adapter: Any = None,
+) -> EpisodeResult:
+    """Explore, estimate, then refuse or rotate the box `truth` (which the controller never sees, except
+    through the oracle estimator).
+
+    Args:
+      estimator: "oracle", or a callable(exploration dict with s (T+1, 5), belt_speed (T+1, 2),
+        actions (T, 4)) -> dict with "distribution" (MassDistribution) and "hazardous" (bool), such as
+        `learned_estimator(cfg)`.
+      force_map: calibrate.ForceMap for the "paper" prior variant (default: the shipped calibration,
+        `calibrate.default_force_map`).
+      max_steps: control-step cap (default cfg.task.max_steps), exploration included.
+      model: a model for the planners' slot (`planning.Model`, e.g. the black box W), used as it is; the
+        estimator and the hazard check are then skipped (a black box has no physical estimate to refuse
+        on). None (default): the physics prior built on the estimator's belief.
+      adapter: callable(model, data) -> model, online adaptation (paper §4.1): called every
+        `ctrl.adapt_every` MPC steps with this episode's data so far (dict s (T+1, 5), belt_speed
+        (T+1, 2), actions (T, 4)); its wall time is reported apart (`adapt_s`, `adaptations`).
+    """
+    if adapter is not None and ctrl.adapt_every < 1:
+        raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
+    key_reset, key_plan = jax.random.split(key)
+    max_steps = cfg.task.max_steps if max_steps is None else max_steps
+    t_start = time.perf_counter()
+    env = env_for(cfg, backend)
+    step = env.step
+    state = env.reset(key_reset, truth)
+    rows, actions = [state], []
+
+    def act(state, a):
+        state = step(state, a)
+        rows.append(state)
+        actions.append(np.asarray(a, dtype=np.float64))
+        return state
+
+    # 1. exploration (paper §2.2): a fixed open-loop sequence, guarded (`explore.Guarded`)
+    n_explore = 0
+    guard = explore.Guarded(cfg, ctrl.explore_guard if model is None else None) if ctrl.explore else None
+    while guard is not None and not bool(state.done):
+        a = guard.next(state.s, state.balance_error)
+        if a is None:
+            break
+        state = act(state, a)
+    n_explore = len(actions)
+    exploration = _episode_data(rows, actions)
+
+    # 2. the belief. A box lost while exploring (it left the belts, tipped or crossed the balance limit
+    # within the fixed sequence) is a failure of the episode: there is nothing left to estimate or turn.
+    # One the guard caught is refused.
+    lost_exploring = bool(state.done)
+    est, belief, why = {}, None, None
+    if not lost_exploring and guard is not None and guard.tripped:
+        why = guard.why()
+    elif not lost_exploring and model is None:
+        est, belief, why = decide(cfg, truth, exploration, estimator)  # 3. refuse when hazardous
+    plan_ms: list[float] = []
+    adapt_s, adaptations = 0.0, 0
+    if why is None and not lost_exploring:
+        # 4. physics-prior MPC
+        if model is None:
+            model = planning_model(cfg, ctrl, belief, force_map, est)
+        mpc = make_planner(cfg, ctrl)
+        window = first_window(exploration["s"])
+
+        def observe(state):
+            w = planning.check_window(np.asarray(window[-planning.MIN_WINDOW :]))
+            sim = state if mpc.privileged else None
+            return planning.observation(w, np.asarray(state.belt_speed, np.float32), state.target_yaw, sim)
+
+        plan_state = mpc.init(observe(state))
+        if ctrl.observer_gain > 0:
+            model = planning.DriftCorrected(model, jnp.zeros(3, jnp.float32))
+        mpc_steps = 0
+        while not bool(state.done) and len(actions) < max_steps:
+            if adapter is not None and mpc_steps > 0 and mpc_steps % ctrl.adapt_every == 0:
+                t0 = time.perf_counter()
+                model = adapter(model, _episode_data(rows, actions))
+                adapt_s += time.perf_counter() - t0
+                adaptations += 1
+            mpc_steps += 1
+            key_plan, key_step = jax.random.split(key_plan)
+            obs = observe(state)
+            t0 = time.perf_counter()
+            a, plan_state, _ = mpc.optimize(key_step, model, obs, plan_state)
+            a = np.asarray(a, dtype=np.float64)
+            plan_ms.append(1e3 * (time.perf_counter() - t0))
+            if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
+                raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
+            if ctrl.observer_gain > 0:
+                predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)
+            state = act(state, a)
+            window.append(np.asarray(state.s))
+            if ctrl.observer_gain > 0 and not bool(state.done):
+                drift = planning.update_drift(model.drift, predicted, state.s, ctrl.observer_gain)
+                model = dataclasses.replace(model, drift=drift)
+    wall = time.perf_counter() - t_start
+
+    trace = EpisodeTrace.from_states(rows, actions, cfg.gripper.control_dt, wall)
+    summary = episode_summary(
+        cfg, truth, state.summary(), est, belief, why, n_explore=n_explore, lost_exploring=lost_exploring,
+        wall_s=wall, plan_ms=plan_ms, adapt_s=adapt_s, adaptations=adaptations, estimator=estimator,
+    )  # fmt: skip
+    timed = timed_calls(plan_ms)
+    return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))

@@ -1,0 +1,96 @@
+"""The estimator slot of the controller: what it believes about the box after the exploration, and the
+refusal when that belief is hazardous (paper §4.2).
+
+An estimator is "oracle" (the true distribution) or a callable(exploration dict) -> {"distribution",
+"hazardous", ...} such as `learned_estimator(cfg)`; `decide` turns either into (estimate, belief, why).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from boxjax import massdist
+from boxjax.config import Config
+from boxjax.estimator import explore, hazard
+from boxjax.estimator.io import load
+from boxjax.estimator.metrics import estimate as estimate_with
+from boxjax.estimator.shipped import default_estimator
+
+
+def hazard_explanation(
+    belief: massdist.MassDistribution,
+    cfg: Config,
+    hazardous: bool | None = None,
+    probability: float | None = None,
+) -> str | None:
+    """None if the belief is safe to turn; else why not, in terms a person understands.
+
+    `hazardous` overrides the paper's rule on `belief` (a learned estimator's calibrated decision), and
+    `probability` is that estimator's hazard probability, quoted in the message when given.
+    """
+    if hazardous is None:
+        hazardous = bool(massdist.is_hazardous(belief, cfg.box))
+    if not hazardous:
+        return None
+    judged = "" if probability is None else f", estimated probability {probability:.2f}"
+    return (
+        f"refusing to rotate: the box is hazardous{judged} (paper §4.2: all mass in one outer quarter of "
+        "the box, over one belt or one end). Estimate: " + massdist.describe(belief, cfg.box)
+    )
+
+
+def oracle_estimator(truth: massdist.MassDistribution, cfg: Config) -> dict:
+    """The true distribution (issue 3's estimator slot)."""
+    return {"distribution": truth, "hazardous": bool(massdist.is_hazardous(truth, cfg.box))}
+
+
+def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str = "physics"):
+    """The learned H as a controller estimator: exploration dict -> {"distribution", "hazardous", ...}.
+
+    weights: an estimator checkpoint (default: the one shipped with boxjax). Raises CheckpointError for a
+    missing, corrupt or incompatible file.
+    hazard_rule: "physics" (default: refuse when H's ensemble puts the centre of mass and the mass inside
+    an outer quarter, or when H's hazard head says so; `boxjax.estimator.hazard`), "head" (the hazard head
+    alone, the
+    previous rule) or "physics_only". With a physics rule the dict also holds "hazard_explanation" (the
+    estimated centre of mass, its uncertainty and the region, in words), "hazard_margin" and
+    "hazard_region"; "hazard_prob" stays the head's probability.
+    """
+    if hazard_rule not in hazard.HAZARD_RULES:
+        choices = ", ".join(hazard.HAZARD_RULES)
+        raise ValueError(f"unknown hazard rule {hazard_rule!r}; choose one of {choices}")
+
+    model = default_estimator(cfg) if weights is None else load(weights, expected_box_config=cfg.box)
+    applied = explore.applied_actions(cfg)
+
+    def estimate(exploration: dict) -> dict:
+        if exploration["actions"].shape[0] != applied.shape[0]:
+            raise ValueError(
+                f"the learned estimator needs the full {applied.shape[0]}-step exploration, got "
+                f"{exploration['actions'].shape[0]} steps (did the box leave the belts while exploring?)"
+            )
+        traj, final = explore.trajectory(exploration["s"], exploration["belt_speed"], applied)
+        out = estimate_with(model, np.asarray(traj), np.asarray(final))
+        if hazard_rule != "head":
+            a = hazard.assess(model, np.asarray(traj), np.asarray(final), hazard_rule)
+            keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")
+            out.update({k: a[k] for k in keys}, hazard_rule=hazard_rule)
+        return out
+
+    return estimate
+
+
+def decide(cfg: Config, truth: massdist.MassDistribution, exploration: dict, estimator: Any):
+    """The belief after the exploration and the decision on it: (est dict, belief, why). `why` is None
+    when the box is to be turned, else the refusal in words (paper §4.2, plus the physics rule's reading
+    when the estimator gives one)."""
+    est = oracle_estimator(truth, cfg) if estimator == "oracle" else estimator(exploration)
+    belief = massdist.validate(est["distribution"], cfg.box)
+    why = hazard_explanation(belief, cfg, bool(est["hazardous"]), est.get("hazard_prob"))
+    if why is not None and est.get(
+        "hazard_explanation"
+    ):  # the physics rule's reading (boxjax.estimator.hazard)
+        why = f"{why} Physics rule: {est['hazard_explanation']}"
+    return est, belief, why

@@ -1,0 +1,302 @@
+"""The fixed exploration phase (paper §2.2): 15 control vectors, each held 3 control steps (45 steps).
+
+Every episode starts with the same open-loop sequence. It turns and shifts a uniform box a little, and is
+built so that what the box does (and what the belts feel) depends as much as possible on where its mass
+sits. The estimator H (`boxjax.estimator`) reads the resulting trajectory.
+
+Physics that the design follows (docs/design.md, `boxjax.sim.model`):
+  * Under Coulomb friction the box's motion does not depend on its total mass: mass cancels. A slipping
+    belt i pulls on the box with mu * N_i, N_i the normal load it carries, so WHERE the mass sits shows in
+    how the box turns and drifts when the belts move differently (the split N1 / N2 along y, the pressure
+    centre along x within each contact patch).
+  * The total MASS shows only through the drives' servo lag: a belt that slips under the box is slowed by
+    mu * N_i / kv (kv = 2e4 N s/m: up to ~1.2 mm/s for 10 kg), and a carriage that drags or slips under
+    the box lags its target by the lateral friction / kp (kp = 5e4 N/m: up to ~0.5 mm). Both are measured
+    (the belt speeds, P1 and P2), so the phases below keep at least one belt slipping most of the time.
+  * The height of the centre of mass shows only while the box accelerates: the inertial force at the
+    centre of mass, mu * g at most, tilts the load between the belts (or front to back) by about
+    M a h / d. Sideways carriage moves under the box (it slides at ~mu g) expose it.
+  * At yaw 0 the centre of mass along x enters only through the turn (the pressure centre along each
+    belt); once the box is turned by psi, the load split between the belts follows
+    x sin(psi) + y cos(psi), so the one-belt drives and carriage moves are made at the turned yaw.
+  * Belt setpoints move by at most belt_accel_limit * control_dt = 0.03 m/s per step, so a vector held 3
+    steps reaches a setpoint up to 0.09 m/s away; the table never asks for more (no clipping with the
+    default config). Carriage steps are at most 1 cm per step.
+
+The sequence (v in m/s along belt travel +x; dp in m along y per step; "CCW" = yaw increasing, left belt
++x and right belt -x). It turns the box a little, probes it at the turned yaw, and turns it back. Measured
+effect on the named boxes (`describe_effect`, default config): uniform / A / B / C / D turn by up to
++10.5 / +6.7 / +7.4 / +1.3 / +0.1 deg and end at +3.7 / +2.2 / +2.2 / +0.8 / +0.0 deg, 1.5 / 2.5 / 2.5 /
+0.4 / 0.4 cm from where they started, worst balance error 0.5 / 0.9 / 0.9 / 1.0 / 1.1 cm. Over random boxes
+(`boxjax.training.dataset`, 1000 boxes, 27 % hazardous) the worst balance error during the phase has median
+1.3
+cm; no non-hazardous box and 1 % of the hazardous ones cross the 4 cm limit (95 % of the non-hazardous
+stay under 2.2 cm). Every carriage move is undone, so the belts end where they started (P1 = -0.10,
+P2 = +0.10 m), and at rest.
+
+ #    v1     v2     dp1     dp2    why
+---  -----  -----  ------  ------  ------------------------------------------------------------------------
+ 1   +0.09  -0.09       0       0  spin up CCW from rest: the onset of slip and the turn's transient
+ 2   +0.12  -0.12       0       0  steady opposite slip: the turn's centre (so the y drift per radian) follows
+                                   the pressure centre along x (COM x), the x drift the load split between the
+                                   belts (COM y); both belts lag by mu N_i / kv (mass)
+ 3   +0.09  -0.09       0       0  a slower turn: how the slip pattern changes with the belt speed
+ 4       0      0       0       0  ramp both belts down: the box decelerates with them (transient). From here
+                                   on the box is turned (uniform: ~10 deg), so the probes below load the belts
+                                   through COM x as well as COM y (x sin(yaw) + y cos(yaw) across the belts)
+ 5   +0.09      0       0       0  left belt alone: the box turns about the right belt if that one carries
+                                   more load, or rides with the left belt if not (sign and size of N1 - N2);
+                                   belt 1 lags by mu N1 / kv
+ 6       0  +0.09       0       0  right belt alone (the left ramps down): the mirror test, N2 - N1 and mu N2
+                                   / kv
+ 7       0      0  +0.007       0  left carriage in by 2.1 cm (the right belt ramps down): drags the box +y
+                                   only if N1 > N2; carriage 1 lags by mu N1 / kp (mass)
+ 8       0      0  -0.007       0  left carriage back out: the same force reversed
+ 9       0      0       0  -0.007  right carriage in: drags the box -y only if N2 > N1; carriage 2 lags by mu
+                                   N2 / kp
+10       0      0       0  +0.007  right carriage back out
+11       0      0  +0.004  +0.004  both carriages shift +y under the resting box: it slides at ~mu g on both
+                                   belts, so the two carriage lags add up to mu M g / kp (mass) and split by
+                                   the load transfer (the height of the COM: the inertial force mu g M at the
+                                   COM tilts the load between the belts by about M a h / d)
+12       0      0  -0.004  -0.004  back
+13   -0.09  +0.09       0       0  turn back CW: the mirror of 1-2, so the drift per radian is seen with both
+                                   signs and the box returns towards its start yaw and centre
+14   -0.09  +0.09       0       0  steady CW slip
+15       0      0       0       0  ramp down: the box ends near its start pose, at rest
+
+Why this sequence: it was chosen by measurement among candidates (`scripts/exploration_candidates.py`,
+results in `benchmarks/results_exploration_candidates.json`), each scored by what a net recovers from it
+(the same 8000 training / 1000 test boxes; mass, centre of mass and I_zz regressed directly) and by how
+many boxes it pushes past the 4 cm balance limit while exploring. Every candidate that turns, drags and
+shifts the box (a longer turn, an oscillating turn, turns with sideways shifts, with or without squeezing
+the box between both carriages) gives the centre of mass to 0.88-0.94 / 0.34-0.37 / 0.67-0.87 cm (median,
+x / y / z); what sets them apart is safety. The previous sequence (turning while shifting the carriages,
+probes at the final yaw, then squeezing the box between both carriages) pushed 1.6 % of the
+non-hazardous and 28 % of the hazardous boxes past the limit during exploration (mostly during the
+squeeze); this one 0 % and 1 %. H trained end to end on 16000 / 32000 boxes of each (1000 test boxes):
+median IoU 0.619 / 0.634 (previous) vs 0.614 / 0.637 (this one), hazard precision at recall 0.98
+0.89 / 0.93 vs 0.91 / 0.88, centre-of-mass error 1.49 / 1.36 vs 1.60 / 1.49 cm: the same IoU and hazard
+precision within their run-to-run spread, ~0.1 cm more centre-of-mass error.
+
+`exploration_actions(cfg)` gives the (45, 4) commanded actions; `applied_actions(cfg)` what the simulator
+applies after the acceleration limit (the `actions` a rollout reports); `trajectory(...)` turns a rollout's
+observations into the estimator's input; `run(env, state)` runs the phase on one environment.
+What the sequence does to the named boxes (uniform, A-D) is measured in `tests/test_explore.py` and
+reported by `describe_effect`.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import geometry, massdist
+from boxjax.config import DEFAULT, Config
+from boxjax.sim import core, native
+
+HOLD = 3  # control steps each vector is held (paper §2.2)
+
+# (v1, v2, dp1, dp2): m/s, m/s, m, m. Reasons in the module docstring's table, same order.
+VECTORS = np.array(
+    [
+        [+0.09, -0.09, 0.000, 0.000],
+        [+0.12, -0.12, 0.000, 0.000],
+        [+0.09, -0.09, 0.000, 0.000],
+        [0.00, 0.00, 0.000, 0.000],
+        [+0.09, 0.00, 0.000, 0.000],
+        [0.00, +0.09, 0.000, 0.000],
+        [0.00, 0.00, +0.007, 0.000],
+        [0.00, 0.00, -0.007, 0.000],
+        [0.00, 0.00, 0.000, -0.007],
+        [0.00, 0.00, 0.000, +0.007],
+        [0.00, 0.00, +0.004, +0.004],
+        [0.00, 0.00, -0.004, -0.004],
+        [-0.09, +0.09, 0.000, 0.000],
+        [-0.09, +0.09, 0.000, 0.000],
+        [0.00, 0.00, 0.000, 0.000],
+    ],
+    dtype=np.float64,
+)
+N_VECTORS = len(VECTORS)
+N_STEPS = N_VECTORS * HOLD  # 45
+N_TRAJ_COLUMNS = 11  # s (5), applied action (4), measured belt speeds at the end of the step (2)
+
+
+def exploration_actions(cfg: Config = DEFAULT) -> np.ndarray:
+    """(45, 4) float32 commanded actions (v1, v2, dp1, dp2) in m/s, m/s, m, m: each of the 15 vectors
+    repeated 3 times. Values beyond the config's belt speed limit or position step are clipped to them
+    (never the case with the default config)."""
+    g = cfg.gripper
+    lim = np.array([g.belt_speed_limit, g.belt_speed_limit, g.max_position_step, g.max_position_step])
+    return np.clip(np.repeat(VECTORS, HOLD, axis=0), -lim, lim).astype(np.float32)
+
+
+@partial(jax.jit, static_argnums=0)
+def _applied(cfg: Config, actions):
+    def body(carry, a):
+        speed, p_target = carry
+        ctrl, new_target, _, _ = core.command(cfg, a, speed, p_target)
+        new_speed = jnp.clip(
+            speed + ctrl[:2] * cfg.gripper.control_dt,
+            -cfg.gripper.belt_speed_limit,
+            cfg.gripper.belt_speed_limit,
+        )
+        applied = jnp.concatenate([new_speed, new_target - p_target])
+        return (new_speed, new_target), applied
+
+    p0 = jnp.asarray(cfg.gripper.belt_y0, actions.dtype)
+    return jax.lax.scan(body, (jnp.zeros(2, actions.dtype), p0), actions)[1]
+
+
+def applied_actions(cfg: Config = DEFAULT) -> np.ndarray:
+    """(45, 4) float32 actions as the simulator applies them to a gripper starting at rest with the belts
+    at `belt_y0`: belt speed columns are the ramped setpoints reached at the end of each step (at most
+    belt_accel_limit * control_dt away from the previous one), position columns the increments after
+    clipping to the belt ranges. Equal to the `actions` that `boxjax.sim.native.rollout` reports."""
+    return np.asarray(_applied(cfg, jnp.asarray(exploration_actions(cfg), jnp.float32)), np.float32)
+
+
+def trajectory(s, belt_speed, actions):
+    """The estimator's input from ONE exploration rollout (pure; vmap for batches).
+
+    Args:
+      s: (T+1, 5) planar states (P1, P2, x, y, yaw) before each step and after the last (m, m, m, m, rad).
+      belt_speed: (T+1, 2) measured belt surface speeds (m/s) at the same instants.
+      actions: (T, 4) applied actions (see `applied_actions`).
+    Returns:
+      traj (T, 11) float32: row t = [s_t (5), a_t (4), belt speeds measured at the END of step t (2)];
+      final (5,) float32: s_T.
+    """
+    s = jnp.asarray(s, jnp.float32)
+    traj = jnp.concatenate(
+        [s[:-1], jnp.asarray(actions, jnp.float32), jnp.asarray(belt_speed, jnp.float32)[1:]], axis=-1
+    )
+    return traj, s[-1]
+
+
+def run(env, state: core.State, cfg: Config | None = None):
+    """Run the exploration phase on ONE environment (native or MJX) from `state` (just after reset).
+
+    Returns (state after the phase, traj (45, 11) numpy, final (5,) numpy). If the episode ends during the
+    phase (e.g. a hazardous box goes out of balance), the environment freezes the state and the remaining
+    rows repeat it; check `state.done`.
+    """
+    cfg = env.cfg if cfg is None else cfg
+    step = env.step
+    states, speeds = [np.asarray(state.s)], [np.asarray(state.belt_speed)]
+    for a in exploration_actions(cfg):
+        state = step(state, a)
+        states.append(np.asarray(state.s))
+        speeds.append(np.asarray(state.belt_speed))
+    traj, final = trajectory(np.stack(states), np.stack(speeds), applied_actions(cfg))
+    return state, np.asarray(traj), np.asarray(final)
+
+
+def describe_effect(cfg: Config = DEFAULT, names=("uniform", "A", "B", "C", "D")) -> dict:
+    """What the phase does to the named boxes (native rollout): per name, the final planar state change
+    (dx, dy in cm, dyaw in degrees), the largest balance error over the phase (cm) and whether any
+    action was clipped."""
+
+    dists = [massdist.named(n, cfg.box) for n in names]
+    out = native.rollout(cfg, dists, exploration_actions(cfg))
+    bal = np.abs(out["s"][..., geometry.Y] - 0.5 * (out["s"][..., geometry.P1] + out["s"][..., geometry.P2]))
+    d = out["s"][:, -1] - out["s"][:, 0]
+    return {
+        n: {
+            "dx_cm": round(float(100 * d[i, geometry.X]), 2),
+            "dy_cm": round(float(100 * d[i, geometry.Y]), 2),
+            "dyaw_deg": round(float(np.degrees(d[i, geometry.YAW])), 2),
+            "max_balance_error_cm": round(float(100 * bal[i].max()), 2),
+            "clipped": bool(out["clipped"][i].any()),
+        }
+        for i, n in enumerate(names)
+    }
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The exploration guard: a box the fixed sequence itself is about to lose is refused, not lost.
+
+GUARD_STEPS = 20  # control steps of re-centring after the guard trips (1 s at 20 Hz)
+
+
+def recentre_action(cfg: Config, s) -> np.ndarray:
+    """(4,) belts stopped (speed setpoints 0) and both carriages stepped towards the box's geometric
+    centre by its balance error (at most one position step), so the belts' midline follows the box."""
+    s = np.asarray(s, np.float64)
+    bal = s[3] - 0.5 * (s[0] + s[1])
+    dp = float(np.clip(bal, -cfg.gripper.max_position_step, cfg.gripper.max_position_step))
+    return np.array([0.0, 0.0, dp, dp])
+
+
+class Guarded:
+    """The exploration of one box, step by step, with the guard (`guard`: a fraction of the task's balance
+    limit; None: the paper's fixed sequence whatever happens): while the balance error stays within
+    guard x limit the fixed sequence runs; once it exceeds that, `GUARD_STEPS` re-centring steps
+    (`recentre_action`) follow and the exploration ends `tripped` (the controller refuses the box: the
+    exploration has shown that the belts cannot keep it balanced on their own). `next(s, balance_error)`
+    gives the next action, or None when the exploration is over. Every path that explores
+    (`controller.run_episode`, `batch.run_episodes`, the replay) steps through this one object, so they
+    make the same decision."""
+
+    def __init__(self, cfg: Config, guard: float | None):
+        if guard is not None and not 0 < guard < 1:
+            raise ValueError(
+                f"the exploration guard must be a fraction of the balance limit in (0, 1), got {guard}"
+            )
+        self.cfg = cfg
+        self.threshold = None if guard is None else guard * cfg.task.balance_limit  # m
+        self.actions = exploration_actions(cfg)
+        self.k = 0  # fixed-sequence steps sent
+        self.recentring = -1  # re-centring steps left once tripped (-1: not tripped)
+        self.worst = 0.0  # m, the balance error that tripped the guard
+
+    @property
+    def tripped(self) -> bool:
+        return self.recentring >= 0
+
+    def next(self, s, balance_error) -> np.ndarray | None:
+        b = abs(float(balance_error))
+        if not self.tripped and self.threshold is not None and b > self.threshold:
+            self.recentring, self.worst = GUARD_STEPS, b
+        if self.tripped:
+            if self.recentring == 0:
+                return None
+            self.recentring -= 1
+            return recentre_action(self.cfg, s)
+        if self.k >= len(self.actions):
+            return None
+        self.k += 1
+        return self.actions[self.k - 1]
+
+    def why(self) -> str | None:
+        """The refusal's explanation (None: not tripped)."""
+        if not self.tripped:
+            return None
+        return (
+            f"refused during the exploration: after {self.k} of its {len(self.actions)} fixed steps the "
+            f"box's geometric centre was {100 * self.worst:.1f} cm off the belts' midline (guard "
+            f"{100 * self.threshold:.1f} cm, limit {100 * self.cfg.task.balance_limit:.1f} cm); the belts "
+            "stopped and the carriages re-centred under it. The fixed exploration cannot hold this box, "
+            "so neither its estimate nor a turn is attempted."
+        )
+
+
+__all__ = [
+    "GUARD_STEPS",
+    "HOLD",
+    "N_STEPS",
+    "N_TRAJ_COLUMNS",
+    "N_VECTORS",
+    "VECTORS",
+    "Guarded",
+    "applied_actions",
+    "describe_effect",
+    "exploration_actions",
+    "recentre_action",
+    "run",
+    "trajectory",
+]
