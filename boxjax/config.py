@@ -1,7 +1,7 @@
 """Physical and algorithmic defaults, as frozen dataclasses.
 
-Every number that shapes the physics or the task lives here, once. Change one only with a reason in the
-README ("Physical defaults"). Units are SI (m, kg, s, rad) throughout.
+Every number that shapes the physics or the task lives here, once. Change one only with a reason recorded in
+docs/design.md#physical-defaults. Units are SI (m, kg, s, rad) throughout.
 
 Frames
 ------
@@ -26,7 +26,8 @@ class ConfigError(ValueError):
 class Hardware:
     """What the real gripper can do. A `GripperConfig` may ask for less, never more.
 
-    Belt limits are from a public SOTO conveyor note (units assumed m/s and m/s^2, see docs/design.md).
+    Belt limits are from a public SOTO conveyor note (units assumed m/s and m/s^2, see
+    docs/design.md#physical-defaults).
     """
 
     max_belt_speed: float = 0.247  # m/s
@@ -82,7 +83,7 @@ class BoxConfig:
 
 @dataclass(frozen=True)
 class GripperConfig:
-    """The two-belt gripper as simulated (docs/design.md "Simulation").
+    """The two-belt gripper as simulated (docs/design.md#simulation).
 
     Belt i (i = 1 left, y < 0; i = 2 right, y > 0) is a slab whose surface runs along x at a commanded
     speed, carried by a carriage that slides along y under a position servo.
@@ -98,7 +99,7 @@ class GripperConfig:
     p2_range: tuple[float, float] = (0.06, 0.20)  # m, allowed P2
     max_position_step: float = 0.01  # m, |dp_i| per control step
     friction: float = 0.5  # box-belt kinetic friction coefficient mu_k
-    # Contact model (README "How the gripper is simulated"). MuJoCo's soft contacts make a slipping box
+    # Contact model (docs/design.md#simulation-model). MuJoCo's soft contacts make a slipping box
     # hop (the solver trades normal against tangential residual), which makes rotation under slip
     # chaotic. A longer friction reference time constant (elliptic cone only) stops the hopping but
     # also weakens sliding friction far below mu*g (measured: 1.2 instead of 4.9 m/s^2 at 0.2 s), so the

@@ -1,9 +1,10 @@
 """One interface for every MPC planner, and one slot for the dynamics model they plan with.
 
-The MPC is "same planner, different model" (docs/design.md): the physics prior (`prior.PriorModel`) and the
+The MPC is "same planner, different model" (docs/design.md#planner-interface): the physics prior
+(`prior.PriorModel`) and the
 black-box W (`baseline`) both fill the model slot, and every planner -- the paper's one-step Pareto random
 shooting (`planner`), predictive sampling and its MPPI / CEM / gradient-refined relatives
-(`sampling_planner`), the privileged simulator reference (`simulator_planner`) -- implements the same
+(`planners.sampling`), the privileged simulator reference (`planners.simulator`) -- implements the same
 three calls, as hydrax's `SamplingBasedController` shares one `optimize` across its algorithms:
 
     plan_state = planner.init(obs)                                   # before the first control step
@@ -25,7 +26,7 @@ mass (a black box) returns a large constant margin (`NO_MARGIN`), so margin-base
 
 A model that knows the box's centre of mass also exposes `model.planar_com() -> (2,) m` (box frame,
 x and y); `planar_com(model)` reads it and gives None for a model that knows none (W, PETS). The
-sampling planner's turn-end term needs it (`sampling_planner.turn_end_excess`) and is left out for such
+sampling planner's turn-end term needs it (`planners.sampling.turn_end_excess`) and is left out for such
 a model.
 
 Particle models (several predicted trajectories per action sequence). A model may also expose
@@ -58,7 +59,7 @@ with different `prior.PriorParams`, `ControllerConfig.prior_params` given as a t
 deterministic particle each, looped over inside the traced function.
 
 Keys. Particles that need noise get it from the key the planner is given for the control step
-(`sampling_planner.plan` folds in `PARTICLE_STREAM`): the same particle noise for every candidate of
+(`planners.sampling.plan` folds in `PARTICLE_STREAM`): the same particle noise for every candidate of
 that step (common random numbers, as hydrax shares its domain randomisations across rollouts), fresh
 noise at the next step. No key lives in a model or in global state.
 """

@@ -1,6 +1,6 @@
 """The rotation task: rewards R1, R2 (paper eq. 1), and the success / failure rules.
 
-Rules (documented in the README):
+Rules (docs/design.md#task-rules):
 - success: |yaw - target| <= yaw_tolerance while the balance error never exceeded balance_limit;
 - failure: balance error above balance_limit, box off the belts (fell or slid past a belt's end),
   box tipped beyond tip_limit, or the step cap reached (and, inside jit where no error can be raised, a

@@ -235,3 +235,14 @@ def test_comparison_table_aggregates_rows():
     assert d["refused"] == 1 and d["worst_balance_m"] is None and d["paper_success"] == "aborts"
     md = comparison.format_table(comparison.table(rows))
     assert "| A | blackbox | 1/2 |" in md and "(refused 1)" in md
+
+
+def test_cli_compare_runs_w_in_the_model_slot(tmp_path, capsys):
+    """`boxjax compare --methods blackbox` loads the shipped W and turns a box with it (one episode)."""
+    import json
+
+    argv = ["compare", "--seeds", "1", "--boxes", "A", "--methods", "blackbox", "--adapt-every", "0"]
+    assert cli.main([*argv, "--out", str(tmp_path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    (row,) = out["rows"]
+    assert row["method"] == "blackbox" and row["box"] == "A" and row["steps"] > 0

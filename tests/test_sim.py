@@ -64,7 +64,8 @@ def _numeric_fields(m):
 
 
 def test_box_fields_cover_everything_that_changes():
-    """Every model field that differs between two boxes travels per world in MJX (docs/design.md pitfall)."""
+    """Every model field that differs between two boxes travels per world in MJX
+    (docs/design.md#simulation-pitfalls)."""
     a = _numeric_fields(model.box_model(CFG, massdist.named("A", CFG.box)))
     c = _numeric_fields(model.box_model(CFG, massdist.named("C", CFG.box)))
     changed = {k for k in a if a[k].shape != c[k].shape or not np.array_equal(a[k], c[k])}

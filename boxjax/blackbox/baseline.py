@@ -24,7 +24,8 @@ What W predicts: the standardised residual of the state delta over constant velo
 Why a delta and why over constant velocity: absolute states are dominated by where the box happens to
 be, and a network of this size reproduces its input to ~1e-3 of its spread at best, which is millimetres;
 the one-step change is what the physics decides, and most of it is the velocity the window already
-shows (constant velocity alone is a strong predictor: ~0.5 mm, ~0.06 deg one-step error, README). The
+shows (constant velocity alone is a strong predictor: ~0.5 mm, ~0.06 deg one-step error,
+docs/results/black-boxes.md). The
 standardised residual puts the network's capacity on the part constant velocity gets wrong.
 
 W knows no centre of mass: `stability_margin` returns `planning.NO_MARGIN`, so the planners' tipping
@@ -40,7 +41,7 @@ and in the metadata the BaselineConfig, the gripper config, the seed and how it 
 refuses (BaselineCheckpointError, naming the field) a file of another format, another BaselineConfig
 than expected, another gripper, or arrays of the wrong shapes.
 
-Training data and the CLI's `train-baseline` are in `baseline_train.py`.
+Training data and the CLI's `train-baseline` are in `training.baseline.py`.
 """
 
 from __future__ import annotations

@@ -37,7 +37,7 @@ Checkpoints (`save` / `load`): arrays layer{i}_w (E, in, out), layer{i}_b (E, ou
 max_logvar (E, 5), the normalisation; metadata: PETSConfig, gripper, seed, features, training info.
 `load` refuses (PETSCheckpointError, a BaselineCheckpointError, naming the field) another format (a W
 file too), another config than expected, another gripper or feature set, or arrays of other shapes.
-Training on the W dataset: `pets_train.py`.
+Training on the W dataset: `training.pets.py`.
 """
 
 from __future__ import annotations

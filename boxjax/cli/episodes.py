@@ -129,7 +129,7 @@ def cmd_simulate(args) -> dict:
 
 
 def _controller_config(args):
-    """The ControllerConfig of --planner / --variant / the planner's own options (`cli_args` has already
+    """The ControllerConfig of --planner / --variant / the planner's own options (`cli.args` has already
     refused the options the chosen planner does not use)."""
     from boxjax.control.config import ControllerConfig
 

@@ -19,7 +19,7 @@
 Every command but `reproduce` (the shipped weights are the default gripper's) takes --config FILE.toml
 (box, gripper and task parameters). With --json the last line printed is one JSON object (the summary);
 everything else goes before it. Bad input, and an option that the chosen planner, model or estimator
-does not use (`cli_args`), exit with status 2 and one line saying what is wrong.
+does not use (`boxjax.cli.args`), exit with status 2 and one line saying what is wrong.
 
 The commands that compile JAX programs keep them on disk between runs (`run_info.use_compilation_cache`:
 ~/.cache/boxjax/jax, or the folder in BOXJAX_COMPILATION_CACHE, "off" to disable), so a second

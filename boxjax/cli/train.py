@@ -43,7 +43,8 @@ _FORCE_UNITS = (("dv1", "m/s"), ("dv2", "m/s"), ("dp1", "m"), ("dp2", "m"))
 
 
 def cmd_calibrate(args) -> dict:
-    """The action -> force map of paper §2.4 by simulation (calibration_run), saved with its command."""
+    """The action -> force map of paper §2.4 by simulation (boxjax.training.calibration), saved with its
+    command."""
     import jax
     import mujoco
     import numpy as np
@@ -118,7 +119,7 @@ def cmd_calibrate(args) -> dict:
 
 
 def cmd_train_baseline(args) -> dict:
-    """W (`--model blackbox`, baseline_train) or the PETS ensemble (`--model pets`, pets_train) on the
+    """W (`--model blackbox`, training.baseline) or the PETS ensemble (`--model pets`, training.pets) on the
     episodes of one box, collected or read from an earlier run's dataset.npz (--data)."""
     import dataclasses
 
@@ -153,18 +154,19 @@ def cmd_compare(args) -> dict:
     """Paper Table 1: the physics prior (learned H) and the black box W (online adaptation), same planner."""
     import json
 
+    from boxjax.blackbox import load_black_box
     from boxjax.experiments import comparison
 
     cfg = load_config(args)
-    blackbox = "blackbox" in args.methods
+    with_w = "blackbox" in args.methods
     cli_models.require_models(
         cfg,
         estimator="prior" in args.methods,
-        baseline=blackbox,
+        baseline=with_w,
         baseline_weights=args.model_weights,
         config_path=args.config,
     )
-    model = blackbox.load_black_box("blackbox", args.model_weights, cfg.gripper) if blackbox else None
+    model = load_black_box("blackbox", args.model_weights, cfg.gripper) if with_w else None
     res = comparison.compare(
         cfg,
         tuple(args.boxes),

@@ -19,17 +19,19 @@ name) and the same per-box key chain, but
 
 What it is not: bit-identical to the one-box path. XLA vectorises a vmapped computation differently from
 one box's (and differently for other batch widths), so now and then a planner's action differs from the
-one-box action at float32 round-off, which the Adam refinement can amplify (README, "Batched
-episodes"); slip makes the closed loop chaotic, so a single
+one-box action at float32 round-off, which the Adam refinement can amplify
+(docs/results/batched-episodes.md); slip makes the closed loop chaotic, so a single
 episode may then end differently, while the statistics over boxes agree within their spread
-(benchmarks/episodes.py runs both on the same boxes; README "Batched episodes"). The physics is the same
+(benchmarks/episodes.py runs both on the same boxes; docs/results/batched-episodes.md). The physics is the
+same
 bit for bit for the same actions (a test), so every episode's actions are kept
 (`EpisodeResult.trace.actions`) and `replay_episode` re-simulates any one exactly.
 
 Supported: the jnp planners ("sampling", "paper") with the physics prior and the oracle or a learned
 estimator, or with a model in the slot (the black box W, PETS) and its online adaptation: each box's
 model is its own slot of the batched model, re-fitted on its own episode every `ctrl.adapt_every` MPC
-steps (the one-box adapter, called per box on the host; cheap beside the planning, README). The
+steps (the one-box adapter, called per box on the host; cheap beside the planning,
+docs/results/batched-episodes.md). The
 privileged simulator planner and the drift observer run through `controller.run_episode`, one box at a
 time (`supports` says which).
 """
@@ -71,7 +73,8 @@ def expected_length(cfg: Config, belief) -> float:
     """How long a box's turn is expected to take, as a number to sort by: how far the belief's centre
     of mass lies from the box centre in the plane, in units of the box's half length and half width.
     Box centres far off-centre turn slowest (on 100 random safe boxes the rank correlation of this number
-    with the episode's steps was 0.86; README, "Batched episodes"). No belief (a model in the slot): 0."""
+    with the episode's steps was 0.86; docs/results/batched-episodes.md). No belief (a model in the slot):
+    0."""
     if belief is None:
         return 0.0
     com = np.asarray(massdist.mass_properties(belief, cfg.box).com, np.float64)

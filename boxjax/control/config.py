@@ -30,12 +30,12 @@ class ControllerConfig:
     # The exploration guard (`explore.Guarded`), a fraction of the balance limit: a box whose balance error
     # passes it during the fixed exploration is re-centred and refused instead of being lost. None: the
     # paper's fixed sequence whatever happens. Models given to `run_episode` (W, PETS: no refusal) always
-    # explore without it. 0.875 (3.5 of 4 cm) was chosen over 0.75 on development boxes (README, "Hazard
-    # decisions").
+    # explore without it. 0.875 (3.5 of 4 cm) was chosen over 0.75 on development boxes
+    # (docs/results/estimator-and-hazards.md).
     explore_guard: float | None = 0.875
     planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
-    sampling: Any = None  # sampling_planner.SamplingOptions (None: its defaults)
-    simulator: Any = None  # simulator_planner.SimulatorOptions (None: its defaults)
+    sampling: Any = None  # planners.sampling.SamplingOptions (None: its defaults)
+    simulator: Any = None  # planners.simulator.SimulatorOptions (None: its defaults)
     adapt_every: int = 0  # MPC steps between online adaptations of a learned model (0: none; paper: 20)
     # Gain of the drift observer (planning.DriftCorrected; 0: off): each step the model's prediction of
     # the state just reached is compared with it and the per-step drift corrected by gain x the error.

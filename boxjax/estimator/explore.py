@@ -4,7 +4,7 @@ Every episode starts with the same open-loop sequence. It turns and shifts a uni
 built so that what the box does (and what the belts feel) depends as much as possible on where its mass
 sits. The estimator H (`boxjax.estimator`) reads the resulting trajectory.
 
-Physics that the design follows (docs/design.md, `boxjax.sim.model`):
+Physics that the design follows (docs/design.md#exploration, `boxjax.sim.model`):
   * Under Coulomb friction the box's motion does not depend on its total mass: mass cancels. A slipping
     belt i pulls on the box with mu * N_i, N_i the normal load it carries, so WHERE the mass sits shows in
     how the box turns and drifts when the belts move differently (the split N1 / N2 along y, the pressure

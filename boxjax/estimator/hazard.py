@@ -63,8 +63,9 @@ class PhysicsRule:
 # under 2 %: physics alone aborted 1.7 % of the safe boxes and refused 95.8 % / 79.5 % of the gaussian / item
 # hazardous ones. No (min_depth, min_fraction, k_std) on a grid did better than the head: at <= 2 % false
 # aborts the best physics-only rule refused 97 % / 80.5 %, and physics-or-head 97 % / 82 % (the head alone,
-# threshold re-chosen: 97.5 % / 82 %). H's evidence cannot separate these boxes better (README, "Hazard
-# decisions"), so the default "physics" rule refuses what the head refuses and explains it physically.
+# threshold re-chosen: 97.5 % / 82 %). H's evidence cannot separate these boxes better
+# (docs/results/estimator-and-hazards.md), so the default "physics" rule refuses what the head refuses
+# and explains it physically.
 DEFAULT_RULE = PhysicsRule()
 
 

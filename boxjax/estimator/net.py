@@ -1,7 +1,7 @@
 """H's network and its prediction (`boxjax.estimator`): the settings and containers, the per-step
 features of an exploration trajectory, the ensemble MLP's forward pass, the host-side reading and checks
 of trajectories and datasets, and the prediction of occupancy, mass and hazard from one. Training,
-metrics and checkpoints build on this module (`estimator`, `estimator_metrics`, `estimator_io`);
+metrics and checkpoints build on this module (`estimator`, `estimator.metrics`, `estimator.io`);
 `estimator` re-exports all.
 """
 

@@ -17,10 +17,10 @@ wall time divided by its episodes) where the controller allows it. The black box
 batched too (`blackbox_episodes`, `batch_black_boxes=True`: every episode its own copy of the model,
 adapted online on its own data, the same schedule and keys as `blackbox_episode`), but by default run
 one at a time: on a CPU their planning is bound by W's matrix products, so a batch is no faster
-(`benchmarks/blackbox_episodes.py`, README "Batched episodes").
+(`benchmarks/blackbox_episodes.py`, docs/results/batched-episodes.md).
 
 `generalisation_gap`: one-step errors of W (trained on A), of PETS (when given) and of the physics prior
-(true masses) on fresh episodes of A and of C (`baseline_train.collect`, another seed than W's data).
+(true masses) on fresh episodes of A and of C (`training.baseline.collect`, another seed than W's data).
 
 `load_black_box(method, weights)` and `adapter_for(model, epochs)` give a method's model and its online
 adaptation (W's or PETS's), for this module and the CLI.
@@ -434,7 +434,7 @@ def generalisation_gap(
 ) -> dict:
     """One-step errors (median / p90 / mean, mm and degrees) of W, the prior (true masses), constant
     velocity and, when `pets_model` is given, PETS (members' mean; with its calibration) on `n_episodes`
-    fresh episodes of each box (baseline_train's episode mix, seed `seed`)."""
+    fresh episodes of each box (training.baseline's episode mix, seed `seed`)."""
     model = baseline.default_model(cfg.gripper) if model is None else model
     out = {}
     for name in boxes:

@@ -6,19 +6,19 @@ figure.
         --plot benchmarks/data_efficiency.png [--h-boxes 100 250 500 1000 2000] \
         [--w-episodes 10 25 50 100 200] [--data /tmp/wrun0/dataset.npz] [--adapt-every 20] [--only H|W]
 
-* H points (`h_point`): `estimator_pipeline.train_estimator(seed, n_boxes)` (what `boxjax
+* H points (`h_point`): `training.estimator.train_estimator(seed, n_boxes)` (what `boxjax
   train-estimator --boxes N --seed 0` runs) into a temporary directory, then `experiments.evaluate` of the
   physics-prior MPC with that H (`controller.learned_estimator(cfg, weights)`, as `boxjax evaluate
   --estimator learned --weights FILE`) on the first `n_eval` random safe boxes of `boxjax evaluate --seed
   EVAL_SEED` (batched). Transitions: n_boxes x 45 exploration steps (validation boxes included: H uses
   them for early stopping and its thresholds). The shipped H (288,000 boxes) is one more point.
-* W points (`w_point`): W trained (`baseline_train.train`, the shipped W's settings: `BaselineConfig()`,
+* W points (`w_point`): W trained (`training.baseline.train`, the shipped W's settings: `BaselineConfig()`,
   12 epochs, seed 0) on the first n episodes of W's dataset (`boxjax train-baseline` writes it:
   200 episodes of box A; `w_episodes`), split as `train_baseline` splits (one episode in 10 held out),
   then `comparison.random_safe` with W in the model slot on the same boxes (one episode at a time;
   online adaptation every `adapt_every` steps, 0: none). Transitions: all of those n episodes' (train and
   held out, as H's count includes its validation boxes). The dataset's episodes cycle through the kinds
-  prior, prior, prior-noisy, prior-noisy, random (`baseline_train.KINDS`), so the first n keep the
+  prior, prior, prior-noisy, prior-noisy, random (`training.baseline.KINDS`), so the first n keep the
   kinds mixed in the dataset's proportions (2:2:1) for any n that is a multiple of 5. The 200-episode
   point is the shipped W (`boxjax/data/baseline.npz`), not retrained.
 
@@ -142,7 +142,7 @@ def h_curve(
 
 def w_episodes(tr: dict, n: int) -> dict:
     """The transitions (and `episode_kind`, `episode_outcome`) of the first `n` episodes of a W dataset
-    (`baseline_train.load_dataset`), in the dataset's order."""
+    (`training.baseline.load_dataset`), in the dataset's order."""
     kinds = np.asarray(tr["episode_kind"])
     if not 2 <= n <= len(kinds):
         raise ValueError(f"need 2 <= episodes <= {len(kinds)} (the dataset's), got {n}")
@@ -152,7 +152,7 @@ def w_episodes(tr: dict, n: int) -> dict:
 
 
 def train_w(sub: dict, cfg: Config = DEFAULT, seed: int = 0, config=None, progress: bool = True):
-    """W trained on a `w_episodes` subset as `baseline_train.train_baseline` trains it (its split, its
+    """W trained on a `w_episodes` subset as `training.baseline.train_baseline` trains it (its split, its
     config); returns (model, info: transitions, train/held-out counts, kinds, held-out W error, train_s)."""
     import jax
 

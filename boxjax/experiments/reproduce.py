@@ -21,7 +21,7 @@ Parts (sizes in `FULL` / `QUICK`; every reduction against the paper is listed in
     `boxjax evaluate --boxes 30 --seed 0`); Fig. 3 (c) from it, and Fig. 2 (c, d): the first validation
     box's true voxels and H's prediction from its exploration (`batch.replay_episode`, the same states);
   * `force_map`: paper Fig. 3 (a, b) for all four forces: the calibration's map with samples collected
-    again by its own command's seed (`calibration_run.calibrate_by_simulation`) and how far the refit map
+    again by its own command's seed (`training.calibration.calibrate_by_simulation`) and how far the refit map
     is from the file;
   * `data_efficiency`: the data-efficiency curve of `boxjax.experiments.data_efficiency` when its results
     (benchmarks/results_data_efficiency.json) exist; otherwise the part says it was not measured.
@@ -121,7 +121,7 @@ class Weights:
     baseline: str | None = None
     calibration: str | None = None
     pets: str | None = None
-    calibration_samples: Any = None  # a calibration_run.Calibration made by --retrain (its samples)
+    calibration_samples: Any = None  # a training.calibration.Calibration made by --retrain (its samples)
 
     def paths(self) -> dict:
         return {k: v for k, v in dataclasses.asdict(self).items() if k != "calibration_samples"}
@@ -182,7 +182,7 @@ def check_out(out, force: bool) -> None:
 
 def retrain_weights(out, sizes: Sizes, cfg: Config = DEFAULT, progress: bool = True) -> tuple[Weights, dict]:
     """Make the calibration, H and W again into `out/weights/` (calibration: `boxjax calibrate`'s
-    function; H: `boxjax train-estimator --boxes sizes.h_boxes`'s; W: `baseline_train.train_baseline`
+    function; H: `boxjax train-estimator --boxes sizes.h_boxes`'s; W: `training.baseline.train_baseline`
     with `sizes.w_episodes` episodes). Returns (the weights, plain data: what was made and each step's
     wall time)."""
     import jax

@@ -1,7 +1,8 @@
 """Predictive sampling over action sequences with the physics prior (beyond the paper's one-step planner).
 
 Why. The paper's planner (`planner.py`) scores each candidate action by the state ONE control step ahead.
-Measured in closed loop with the simulator (README, "Planner"), that is too short-sighted for boxes whose
+Measured in closed loop with the simulator (docs/results/planner.md), that is too short-sighted for boxes
+whose
 centre of mass is far off-centre (box C): a 0.05 s prediction cannot see that a turn started now carries
 the box's geometric centre sideways for the next half second, faster than the belts can follow, and the
 random pick on the Pareto front alternates between turning and re-centring without a plan for either.
@@ -42,7 +43,8 @@ Score (lower is better), summed over the predicted states s_1..s_H (paper's obje
 The best rollout's (R1, R2) at its worst state are reported in PlanInfo so the Pareto view of the paper
 stays available.
 
-Beyond predictive sampling (all `SamplingOptions`, measured in the README): perturbations at spline
+Beyond predictive sampling (all `SamplingOptions`, measured in docs/results/planner.md): perturbations at
+spline
 knots (`n_knots`, MuJoCo MPC's parameterisation), several sampling rounds per step with MPPI's weighted
 mean or CEM's elite mean and std (`update`, `iterations`), Adam refinement of the chosen sequence by
 gradient through the differentiable prior (`gradient_steps`, optax), and a deadband on carriage steps
@@ -102,8 +104,8 @@ class SamplingOptions:
     w_effort: float = 0.01
     # Turn-end reach: w_reach * relu(turn_end_excess / balance_limit)^2 on the last predicted state, where
     # the geometric centre will be once the box has turned to the target about its centre of mass
-    # (`turn_end_excess`). 0: off. 100 was chosen over 30 and 300 on development seeds (README, "Random
-    # boxes"); models without a centre of mass (W, PETS) get no term.
+    # (`turn_end_excess`). 0: off. 100 was chosen over 30 and 300 on development seeds
+    # (docs/results/random-boxes.md); models without a centre of mass (W, PETS) get no term.
     w_reach: float = 100.0
     # Carriage rate: w_position_rate * ((dp_k - dp_{k-1}) / max_position_step)^2 over the sequence, dp_{-1}
     # the carriages' last observed step (window). 0: off. See `position_rate_cost`.
@@ -119,11 +121,12 @@ class SamplingOptions:
     n_elite: int = 8  # CEM
     min_sigma_fraction: float = 0.2  # CEM, the std never shrinks below this fraction of the sigmas
     # Adam steps through the prior on the chosen sequence (0: none). 5 turned 273 of 300 random safe boxes
-    # (oracle, seeds 0-2) against 259 without, for 1.8x the planning time (README, "Random boxes").
+    # (oracle, seeds 0-2) against 259 without, for 1.8x the planning time (docs/results/random-boxes.md).
     gradient_steps: int = 5
     gradient_lr: float = 0.1  # in units of the perturbation std per step
     # m: position steps smaller than this are sent (and predicted) as 0. Every carriage step is an
-    # impulsive event the prior predicts worst (README: one-step error 0.75 mm for position actions,
+    # impulsive event the prior predicts worst (docs/results/planner.md: one-step error 0.75 mm for position
+    # actions,
     # 0.25 mm for speed actions); without a deadband the gaussian noise moves a carriage every step.
     position_deadband: float = 0.0
     # The pose term: "quadratic" w_yaw * e^2 (the paper's R1 = 1 / (e^2 + eps) made a cost), or "l1"
@@ -243,7 +246,7 @@ def turn_end_excess(s, com_xy, target_yaw, cfg: Config, y_margin: float) -> jax.
     cos(target) c_y): a box with its centre of mass 12 cm along its length ends 12 cm to the side of it.
     If y_end is out of the belts' reach the turn cannot be finished balanced; the box has to be dragged
     sideways first, which takes longer than a planning horizon, so the horizon's states alone cannot see
-    it (README, "Random boxes": the step-cap failures)."""
+    it (docs/results/random-boxes.md: the step-cap failures)."""
     cx, cy = com_xy[0], com_xy[1]
     yaw = s[geometry.YAW]
     y_com = s[geometry.Y] + jnp.sin(yaw) * cx + jnp.cos(yaw) * cy
@@ -295,7 +298,8 @@ def position_rate_cost(seq, window, cfg: Config, o: SamplingOptions) -> jax.Arra
     Why: predictive sampling's best-of-N keeps each sample's gaussian noise, and a cost on states cannot
     tell a carriage alternating +-10 mm from one standing still (their net moves are alike), so the
     carriages chatter at the step limit. Each carriage step is an impulsive event that the prior predicts
-    worst (README: its one-step error is 3x larger for position actions), and a real servo wears under
+    worst (docs/results/planner.md: its one-step error is 3x larger for position actions), and a real servo
+    wears under
     it. A penalty on the rate, not the size, leaves a sustained move free."""
     if o.w_position_rate <= 0:
         return jnp.zeros((), seq.dtype)

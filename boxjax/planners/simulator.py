@@ -7,7 +7,7 @@ horizon) beyond reach. It needs the truth, so it is `privileged`: the controller
 env's State in `obs.sim` (`boxjax.sim.core.State`: `.physics` the full mjSTATE_INTEGRATION state,
 `.model` the box's mujoco.MjModel, `.p_target` the carriage targets) and it is oracle-only.
 
-What. The same predictive sampling as `sampling_planner` (Howell et al. 2022; MuJoCo MPC's and hydrax's
+What. The same predictive sampling as `planners.sampling` (Howell et al. 2022; MuJoCo MPC's and hydrax's
 default with a perfect model): keep a nominal plan of `horizon` actions, perturb it with gaussian noise
 (the same `SamplingOptions` sigmas, clipping and speed cap), roll every candidate out, keep the best,
 send its first action and shift it. Only the rollouts differ: each candidate runs in native MuJoCo from
@@ -24,7 +24,7 @@ Measured: 3e-8 m off NativeEnv after the first contact change; the mj_step loop:
 18.6 ms, on the shared 2-core CPU). MuJoCo's bindings release the GIL inside `mj_step`, so the candidates
 are stepped by a pool of `nthread` Python threads (all cores by default), one MjData per candidate.
 
-Score. `sampling_planner.rollout_cost` on the planar states the simulator reached (the same cost as the
+Score. `planners.sampling.rollout_cost` on the planar states the simulator reached (the same cost as the
 default planner), with its tipping barrier from the model slot's `stability_margin`: under the oracle
 estimator that is the physics prior built on the true voxel masses. On top, the simulator's own verdict
 after each control step (`core.observe`, i.e. `task.status` with the simulator's z, tilt and the
@@ -34,7 +34,7 @@ the episode in a failure (unbalanced, off_belts, tipped) at step k of H pays
 or the step cap) are replaced by that terminal state, so a rollout that succeeds early stops paying.
 
 Cost. N x H x 25 physics substeps per control step: it is slow by design. Measured with the default
-32 x 10 on the shared 2-core CPU (README, "Simulator-planner reference"): 112 ms median, 193 ms p99 per
+32 x 10 on the shared 2-core CPU (docs/results/random-boxes.md): 112 ms median, 193 ms p99 per
 step at load average ~3 (box C); 138 / 1540 ms over the 50-box evaluation at load 5-11 (30 min, 50/50
 turned, where the default planner turned 43).
 """
@@ -69,7 +69,7 @@ class SimulatorOptions:
     """Settings of the simulator reference (hashable: part of the cached controller config).
 
     sampling: the predictive-sampling settings (samples, horizon, sigmas, speed cap, cost weights),
-      shared with `sampling_planner`. Default 32 samples x 10 steps: 8000 substeps per control step.
+      shared with `planners.sampling`. Default 32 samples x 10 steps: 8000 substeps per control step.
     w_fail: cost of a rollout that ends the episode in a failure (see the module docstring).
     nthread: Python threads stepping the candidates (None: all cores).
     """
@@ -97,7 +97,7 @@ class SimulatorInfo(NamedTuple):
 
 
 def _sample(key, nominal, cfg: Config, o: sp.SamplingOptions):
-    """(N, H, 4) the nominal and N - 1 gaussian perturbations of it, clipped as `sampling_planner.plan`."""
+    """(N, H, 4) the nominal and N - 1 gaussian perturbations of it, clipped as `planners.sampling.plan`."""
     sigma = jnp.array([o.speed_sigma, o.speed_sigma, o.position_sigma, o.position_sigma], jnp.float32)
     noise = jax.random.normal(key, (o.n_samples - 1, o.horizon, 4)) * sigma
     nominal = jnp.asarray(nominal, jnp.float32)

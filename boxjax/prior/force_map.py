@@ -415,8 +415,8 @@ def _load_default(path: str, cfg: Config) -> ForceMap:
     except CalibrationError as e:
         raise CalibrationError(
             f"the shipped calibration cannot be used: {e}. Make one for this configuration with "
-            "`boxjax calibrate --out FILE` (calibration_run.calibrate_by_simulation) and pass its "
-            "force map explicitly"
+            "`boxjax calibrate --out FILE` (boxjax.training.calibration.calibrate_by_simulation) and pass "
+            "its force map explicitly"
         ) from e
 
 

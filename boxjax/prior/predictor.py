@@ -87,7 +87,7 @@ Velocities and the yaw are continuous (not wrapped) in the predicted state: yaw_
 
 Modules: this one holds the settings (`PriorParams`), the per-box model (`make_prior`), the step of
 either variant and the rollouts; where the belts touch the box and how hard (contact elements, normal
-loads, the tipping margin) is `prior_contact`, the friction law `prior_friction`. Their public names are
+loads, the tipping margin) is `prior.contact`, the friction law `prior.friction`. Their public names are
 re-exported here.
 """
 

@@ -1,8 +1,9 @@
 """A learned residual on the physics prior: the prior's rollout, corrected step by step by a small MLP.
 
 Why. The "slip" prior is a rigid, quasi-static contact model. Along the controller's own closed loop its
-10-step balance error is several times that of random actions, and its known bias (README, "What the
-failures are") is the drag of a carriage move under a turning or slipping box: in the simulator the box
+10-step balance error is several times that of random actions, and its known bias
+(docs/results/random-boxes.md, "What is not
+met, and why") is the drag of a carriage move under a turning or slipping box: in the simulator the box
 hops clear of the belts for a few milliseconds of each carriage pulse, which no rigid-contact prior
 has. The simulator-planner reference turns every failure of the default controller with the same
 planner and cost, so the remaining failures are model error. A residual keeps the prior's structure
@@ -18,8 +19,8 @@ from: |dx|, |dy| <= `ResidualConfig.max_position`, |dyaw| <= max_yaw, |dv| <= ma
 |domega| <= max_omega (tanh). Its last layer starts at zero, so an untrained residual is the prior
 exactly (a test).
 
-Training (`fit`): through the whole H-step rollout (the prior is differentiable, docs/design.md
-"differentiable" model), on segments of closed-loop episodes of the default controller, the loss a
+Training (`fit`): through the whole H-step rollout (the prior is differentiable:
+docs/design.md#differentiable), on segments of closed-loop episodes of the default controller, the loss a
 smooth L1 (pseudo-Huber) of the predicted (x, y, yaw) against the simulator's, per step, in mm and
 units of `ResidualConfig.yaw_unit`. Episodes of the controller's own loop, because the prior's error
 there is what the planner meets (`benchmarks/closed_loop_error.py` collects them). The prior stays

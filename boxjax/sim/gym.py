@@ -8,7 +8,7 @@
 One episode is one box on the belts (`sim.NativeEnv`): the agent sends `(v1, v2, dp1, dp2)` each 0.05 s
 control step and must turn the box by pi/2 while its geometric centre stays within the balance limit
 (4 cm) of the belts' midline. Everything is in SI units, in the conveyor frame (x along the belts, y
-across, z up; README "Task rules").
+across, z up; docs/design.md#task-rules).
 
 Observation (8,) float32: P1, P2 (m, belt centre-lines), x, y (m, box centre), yaw (rad, continuous), the
 two measured belt surface speeds (m/s) and the yaw still to turn, target - yaw (rad); bounds: the

@@ -3,7 +3,8 @@
 Per-box model fields (mass, centre of mass, inertia and MuJoCo's derived constants) travel inside the
 State (`state.model`, a dict of arrays), so `jax.vmap(env.pure_step)` over a batch of states simulates a batch
 of different boxes with no extra `in_axes` bookkeeping. The fields are computed on the host from a native
-model per box after `mj_setConst` (docs/design.md pitfalls: MJX does not recompute derived constants).
+model per box after `mj_setConst` (docs/design.md#simulation-pitfalls: MJX does not recompute derived
+constants).
 """
 
 from __future__ import annotations
@@ -80,7 +81,8 @@ class MjxEnv:
         p0 = jnp.asarray(self.cfg.gripper.belt_y0, dtype=jnp.float32)
         d = mjx.make_data(m)
         ctrl = d.ctrl.at[model.CARRIAGE1_P].set(p0[0]).at[model.CARRIAGE2_P].set(p0[1])
-        # A strongly typed time: a weakly typed one makes MJX compile the step twice (docs/design.md).
+        # A strongly typed time: a weakly typed one makes MJX compile the step twice
+        # (docs/design.md#simulation-pitfalls).
         # No mjx.forward here: the observation needs only qpos / qvel, and every step runs forward itself.
         d = d.replace(qpos=qpos, ctrl=ctrl, time=jnp.zeros((), jnp.float32))
         yaw0 = core.planar_state(self.ids, d.qpos)[4]

@@ -1,6 +1,6 @@
 """The MuJoCo model of the two-belt gripper, and applying a box's mass distribution to it.
 
-One MJCF serves both backends (docs/design.md "Simulation"):
+One MJCF serves both backends (docs/design.md#simulation):
 - each belt is a flat box geom on an x-slide joint driven by a velocity servo; the slab is re-centred to
   x = 0 after every control step, so a finite slab emulates an endless belt surface;
 - each belt rides on a carriage on a y-slide joint under a position servo (the belt position P_i);
@@ -79,8 +79,8 @@ def mjcf(cfg: Config) -> str:
     )
     # The placeholder box inertial is deliberately off-centre and rotated: a box compiled with its centre
     # of mass at the geometric centre gets body_sameframe = 1, and native MuJoCo then silently ignores a
-    # later change of body_ipos / body_iquat (docs/design.md,
-    # pitfalls). Every real box overwrites these values.
+    # later change of body_ipos / body_iquat (docs/design.md#simulation-pitfalls). Every real box overwrites
+    # these values.
     return f"""<mujoco model="boxjax_gripper">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{g.timestep}" integrator="implicitfast" gravity="0 0 {-g.gravity}"

@@ -91,7 +91,7 @@ class NativeBatch:
     steps it (mjSTATE_INTEGRATION is all the integrator reads, so a persistent MjData and NativeEnv's
     get / set round trip take the same steps); the command and the observation of all B worlds are one
     vmapped call each, the part of a control step that costs most for one box (more than its physics:
-    README, "Batched episodes"). Worlds whose episode has ended, and worlds not `active` in a
+    docs/results/batched-episodes.md). Worlds whose episode has ended, and worlds not `active` in a
     step, are not stepped: their state stays as it was (a paused world does not evolve).
 
     Fields (numpy, leading axis B): s (B, 5), belt_speed (B, 2), p_target (B, 2), target_yaw (B,),

@@ -4,7 +4,8 @@
   evaluate_estimator(key, n_boxes, weights_path, cfg)  ->  metrics on fresh, seeded random boxes
   default_estimator(cfg)  ->  the shipped weights (boxjax/data/estimator.npz), checked against cfg
 
-The default estimator configuration (`DEFAULT_ESTIMATOR`) was chosen by measurement (README / the
+The default estimator configuration (`DEFAULT_ESTIMATOR`) was chosen by measurement
+(docs/results/estimator-and-hazards.md / the
 report of the session that built it): see `DEFAULT_ESTIMATOR`'s comment.
 """
 
@@ -34,7 +35,8 @@ from boxjax.training import dataset as ds
 # hazard head (hazard_weight = 1), same 32000 boxes: 0.634 / 1.36 cm / 0.93: a sharper hazard decision
 # than thresholding the occupancy, at the same IoU within noise. The shipped weights use 288000 boxes
 # (the current exploration: 48000 boxes 0.655 median IoU / 1.33 cm, 288000 boxes 0.694 / 1.17 cm on the
-# same 500 fresh boxes; README, estimator section). Wider members at the same parameter budget (2 x
+# same 500 fresh boxes; docs/results/estimator-and-hazards.md). Wider members at the same parameter budget (2
+# x
 # 512^3) were no better with 96000 boxes (0.667 vs 0.671 median IoU, 8000 test boxes).
 DEFAULT_ESTIMATOR = E.EstimatorConfig(hidden=(256, 256, 256), members=5, com_weight=1.0, patience=25)
 # The hazard threshold is calibrated on the validation split for this recall: the operating point asked

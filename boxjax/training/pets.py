@@ -1,7 +1,7 @@
-"""Offline training of the PETS ensemble (`pets.py`) on W's data (`baseline_train`), and its report.
+"""Offline training of the PETS ensemble (`pets.py`) on W's data (`training.baseline`), and its report.
 
 The data are W's (`boxjax train-baseline --out DIR` writes DIR/dataset.npz: 200 episodes of box A, the
-prior pipeline, its noisy variant and random exploration; baseline_train's module docstring), split the
+prior pipeline, its noisy variant and random exploration; training.baseline's module docstring), split the
 same way (by episode, one in 10 held out), so the held-out one-step errors of PETS, W, the prior and
 constant velocity are on the same transitions. Without a dataset, episodes are collected as for W.
 
@@ -35,7 +35,7 @@ REPORT = "pets_report.json"
 
 
 def split_episodes(tr: dict, n_episodes: int) -> tuple[dict, dict]:
-    """(train, held-out) by episode as `baseline_train.train_baseline` splits W's data: one episode in 10
+    """(train, held-out) by episode as `training.baseline.train_baseline` splits W's data: one episode in 10
     held out (one of n below 10 episodes; every second one if that leaves none held out)."""
     if n_episodes < 2:
         raise ValueError(f"need at least 2 episodes (one is held out), got {n_episodes}")
