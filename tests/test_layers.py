@@ -28,6 +28,7 @@ LAYERS = (
     "estimator",
     "planners",
     "control",
+    "robot",
     "training",
     "experiments",
     "cli",

@@ -6,6 +6,7 @@ import dataclasses
 from typing import Any
 
 from boxjax import prior
+from boxjax.control.state_estimate import FilterConfig
 from boxjax.planners import paper as planner
 from boxjax.planners import registry
 from boxjax.planners.registry import PLANNERS  # noqa: F401 (the built-in planner names, for the CLI)
@@ -52,6 +53,9 @@ class ControllerConfig:
     # A learned residual on the physics prior (`boxjax.prior.residual`): the path of its checkpoint, or None
     # (the prior alone). The "slip" prior with belief="mean" and one prior setting only.
     residual: str | None = None
+    # The controller's filter over the observed box pose (`state_estimate.FilterConfig`; used when the
+    # sensor is imperfect: `boxjax.sim.faults`).
+    pose_filter: FilterConfig = FilterConfig()
 
     def __post_init__(self):
         if self.explore_guard is not None and not 0 < self.explore_guard < 1:

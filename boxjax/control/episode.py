@@ -18,15 +18,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import massdist, planning, task
+from boxjax import geometry, massdist, planning, task
 from boxjax.config import Config
 from boxjax.control.config import ControllerConfig
 from boxjax.control.models import planning_model
+from boxjax.control.world import World
 from boxjax.estimator import com_error_cm, explore
 from boxjax.estimator.belief import decide
 from boxjax.planners.registry import make_planner
 from boxjax.sim import make_env
 from boxjax.sim.episode import EpisodeTrace
+from boxjax.sim.faults import NONE as NO_FAULTS
+from boxjax.sim.faults import Faults
 
 
 class EpisodeResult(NamedTuple):
@@ -45,12 +48,13 @@ def env_for(cfg: Config, backend: str):
     return make_env(cfg, backend)
 
 
-def _episode_data(rows, actions) -> dict:
-    """The episode so far as arrays: s (T+1, 5), belt_speed (T+1, 2), actions (T, 4)."""
+def _controller_data(seen, sent) -> dict:
+    """The episode so far as the controller knows it: the states and belt speeds it saw, s (T+1, 5) and
+    belt_speed (T+1, 2), and the actions it sent, (T, 4)."""
     return {
-        "s": np.stack([np.asarray(r.s) for r in rows]),
-        "belt_speed": np.stack([np.asarray(r.belt_speed) for r in rows]),
-        "actions": np.asarray(actions, np.float64).reshape(-1, 4),
+        "s": np.stack([np.asarray(s) for s, _ in seen]),
+        "belt_speed": np.stack([np.asarray(b) for _, b in seen]),
+        "actions": np.asarray(sent, np.float64).reshape(-1, 4),
     }
 
 
@@ -126,6 +130,7 @@ def run_episode(
     max_steps: int | None = None,
     model: Any = None,
     adapter: Any = None,
+    faults: Faults = NO_FAULTS,
 ) -> EpisodeResult:
     """Explore, estimate, then refuse or rotate the box `truth` (which the controller never sees, except
     through the oracle estimator).
@@ -143,33 +148,48 @@ def run_episode(
       adapter: callable(model, data) -> model, online adaptation (paper §4.1): called every
         `ctrl.adapt_every` MPC steps with this episode's data so far (dict s (T+1, 5), belt_speed
         (T+1, 2), actions (T, 4)); its wall time is reported apart (`adapt_s`, `adaptations`).
+      faults: how the simulated world differs from the controller's (`boxjax.sim.faults.Faults`: pose
+        noise, latencies, dropped frames, friction and servo mismatch, a mass shift), drawn from `key`.
+        The controller then sees the pose through its filter (`ctrl.pose_filter`), never the simulator's
+        state; the episode's outcome is the true world's. Native backend only.
     """
     if adapter is not None and ctrl.adapt_every < 1:
         raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
+    if faults.any and backend != "native":
+        raise ValueError(f"faults are simulated on the native backend only, not {backend!r}")
     key_reset, key_plan = jax.random.split(key)
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
     env = env_for(cfg, backend)
     step = env.step
     state = env.reset(key_reset, truth)
-    rows, actions = [state], []
+    world = World(cfg, faults, ctrl.pose_filter, key, truth)
+    world.prepare(state.model)
+    rows, actions = [state], []  # the true world: states and the actions the gripper applied
+    seen, sent = [world.observe(state.s, state.belt_speed)], []  # the controller's view: (s, belt_speed)
 
     def act(state, a):
-        state = step(state, a)
+        a = np.asarray(a, dtype=np.float64)
+        world.before_step(len(actions), state.model, env.ids.box_body)
+        applied = world.send(a)
+        state = step(state, applied)
         rows.append(state)
-        actions.append(np.asarray(a, dtype=np.float64))
+        actions.append(np.asarray(applied, dtype=np.float64))
+        sent.append(a)
+        seen.append(world.observe(state.s, state.belt_speed))
         return state
 
     # 1. exploration (paper §2.2): a fixed open-loop sequence, guarded (`explore.Guarded`)
     n_explore = 0
     guard = explore.Guarded(cfg, ctrl.explore_guard if model is None else None) if ctrl.explore else None
     while guard is not None and not bool(state.done):
-        a = guard.next(state.s, state.balance_error)
+        s_seen = seen[-1][0]  # with a perfect sensor the true state, and its balance error as the env has it
+        a = guard.next(s_seen, geometry.balance_error(s_seen) if world.active else state.balance_error)
         if a is None:
             break
         state = act(state, a)
     n_explore = len(actions)
-    exploration = _episode_data(rows, actions)
+    exploration = _controller_data(seen, sent)
 
     # 2. the belief. A box lost while exploring (it left the belts, tipped or crossed the balance limit
     # within the fixed sequence) is a failure of the episode: there is nothing left to estimate or turn.
@@ -192,7 +212,7 @@ def run_episode(
         def observe(state):
             w = planning.check_window(np.asarray(window[-planning.MIN_WINDOW :]))
             sim = state if mpc.privileged else None
-            return planning.observation(w, np.asarray(state.belt_speed, np.float32), state.target_yaw, sim)
+            return planning.observation(w, np.asarray(seen[-1][1], np.float32), state.target_yaw, sim)
 
         plan_state = mpc.init(observe(state))
         if ctrl.observer_gain > 0:
@@ -201,7 +221,7 @@ def run_episode(
         while not bool(state.done) and len(actions) < max_steps:
             if adapter is not None and mpc_steps > 0 and mpc_steps % ctrl.adapt_every == 0:
                 t0 = time.perf_counter()
-                model = adapter(model, _episode_data(rows, actions))
+                model = adapter(model, _controller_data(seen, sent))
                 adapt_s += time.perf_counter() - t0
                 adaptations += 1
             mpc_steps += 1
@@ -216,9 +236,9 @@ def run_episode(
             if ctrl.observer_gain > 0:
                 predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)
             state = act(state, a)
-            window.append(np.asarray(state.s))
+            window.append(np.asarray(seen[-1][0]))
             if ctrl.observer_gain > 0 and not bool(state.done):
-                drift = planning.update_drift(model.drift, predicted, state.s, ctrl.observer_gain)
+                drift = planning.update_drift(model.drift, predicted, seen[-1][0], ctrl.observer_gain)
                 model = dataclasses.replace(model, drift=drift)
     wall = time.perf_counter() - t_start
 

@@ -1,0 +1,166 @@
+"""The control loop of a ROS node without ROS: the robot's messages in, its commands out, a boxjax
+planner in between.
+
+    loop = RobotLoop(PlannerStep(planner, model, key), AdapterConfig())
+    every control step (50 ms), with the latest messages and the node's clock:
+        velocity, carriage, status = loop.step(tracking, joints, now)
+        publish velocity (always); publish carriage unless it is None
+
+The loop keeps what boxjax's controller keeps (`control.episode.run_episode`): the window of the last
+planning.MIN_WINDOW = 3 planar states, one per control step, the first one repeated at the start (the
+box at rest); the target yaw (the first observed yaw + pi / 2 unless given); and the carriage targets,
+each step's targets being the last ones plus the action's steps (as the simulator does; they start at the
+first measured positions).
+
+It stops (belts to 0 at the acceleration limit, carriages held) instead of planning when no observation
+was ever valid (`no_observation`: no carriage command then, the carriages keep their last target), when
+this step's messages are invalid (`invalid_observation`, with the adapter's ValueError in
+status["error"]: a tipped box stops at once), and for the adapter's reasons (`adapter.STOP_REASONS`:
+stale, future or non-finite stamps, a non-finite action). It resumes by itself when fresh valid messages
+come; after a gap longer than max_observation_age the window restarts from the new state (the states
+in a window must be one control step apart).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import jax
+import numpy as np
+
+from boxjax import planning
+from boxjax.config import TaskConfig
+from boxjax.robot.adapter import (
+    STOP_REASONS,
+    AdapterConfig,
+    carriage_targets,
+    commands_from_action,
+    observation_from_messages,
+    stamp_problem,
+    stop_commands,
+)
+from boxjax.robot.messages import CarriageCommand, JointState, TrackingFeedback, VelocityControl
+
+LOOP_STOP_REASONS = (*STOP_REASONS, "no_observation", "invalid_observation")
+
+PlanStep = Callable[[planning.Observation], Any]  # observation -> action (4,) (v1, v2, dp1, dp2)
+
+
+class PlannerStep:
+    """A boxjax `planning.Planner` and its model as a plan step `obs -> action (4,)`: it keeps the
+    planner's own state (`init` on the first call, then `optimize`'s plan_state) and splits `key` once
+    per call, as `control.episode.run_episode` does."""
+
+    def __init__(self, planner: planning.Planner, model, key):
+        self.planner, self.model, self.key = planner, model, key
+        self.plan_state = None
+
+    def __call__(self, obs: planning.Observation) -> np.ndarray:
+        if self.plan_state is None:
+            self.plan_state = self.planner.init(obs)
+        self.key, key = jax.random.split(self.key)
+        a, self.plan_state, _ = self.planner.optimize(key, self.model, obs, self.plan_state)
+        return np.asarray(a, np.float64)
+
+
+class RobotLoop:
+    """Messages in, commands out (module docstring).
+
+    Args:
+      plan_step: observation (planning.Observation: window (3, 5), belt_speed (2,), target_yaw) ->
+        action (4,); e.g. `PlannerStep(make_planner(cfg, ctrl), model, key)`. Exceptions it raises pass
+        through (the robot's own command timeout then stops the belts).
+      cfg: the adapter's conventions and limits.
+      target_yaw: rad in the conveyor frame; None: the first observed yaw + `turn`.
+      turn: rad, the turn to make (TaskConfig.target_yaw_delta, pi / 2).
+    """
+
+    def __init__(
+        self,
+        plan_step: PlanStep,
+        cfg: AdapterConfig = AdapterConfig(),  # noqa: B008 (frozen)
+        *,
+        target_yaw: float | None = None,
+        turn: float = TaskConfig().target_yaw_delta,
+        window: int = planning.MIN_WINDOW,
+    ):
+        if window < planning.MIN_WINDOW:
+            raise ValueError(f"window must be at least planning.MIN_WINDOW = {planning.MIN_WINDOW}")
+        self.plan_step, self.cfg, self.turn, self.length = plan_step, cfg, float(turn), int(window)
+        self.target_yaw = None if target_yaw is None else float(target_yaw)
+        self._window: list[np.ndarray] = []
+        self._belt_speed = np.zeros(2)
+        self._stamp: float | None = None  # of the newest state in the window
+        self._p_target: np.ndarray | None = None  # (P1, P2) m, the last carriage targets sent
+
+    @property
+    def window(self) -> np.ndarray:
+        """(W, 5) the planar states the planner sees (oldest first); (0, 5) before any observation."""
+        return np.array(self._window, np.float64).reshape(-1, 5)
+
+    @property
+    def p_target(self) -> np.ndarray | None:
+        """(2,) m, the carriage targets (P1, P2) last sent, or None before the first observation."""
+        return None if self._p_target is None else self._p_target.copy()
+
+    def observe(self, tracking: TrackingFeedback | Mapping, joints: JointState | Mapping) -> str:
+        """Take one pair of messages into the window. Returns what happened: "new", "first", "restarted"
+        (after a gap), or "repeated" (not newer than the last state: ignored). Raises the adapter's
+        ValueError for invalid messages."""
+        prev_yaw = self._window[-1][4] if self._window else None
+        s, v, stamp = observation_from_messages(tracking, joints, self.cfg, prev_yaw)
+        if self._stamp is not None and stamp <= self._stamp:
+            return "repeated"
+        if self._stamp is None:
+            what = "first"
+            self._p_target = s[:2].copy()
+            if self.target_yaw is None:
+                self.target_yaw = float(s[4]) + self.turn
+        elif stamp - self._stamp > self.cfg.max_observation_age:
+            what = "restarted"
+        else:
+            what = "new"
+        if what == "new":
+            self._window = [*self._window, s][-self.length :]
+        else:
+            self._window = [s] * self.length
+        self._belt_speed, self._stamp = v, stamp
+        return what
+
+    def step(
+        self, tracking: TrackingFeedback | Mapping, joints: JointState | Mapping, now: float
+    ) -> tuple[VelocityControl, CarriageCommand | None, dict]:
+        """One control step: observe the messages, plan, and return the commands to publish.
+
+        Returns (VelocityControl, CarriageCommand or None (no_observation only), status): status has
+        safe_stop, reason (LOOP_STOP_REASONS or None), observation ("first", "new", "restarted",
+        "repeated", "invalid"), error (the ValueError's text for "invalid"), and for planned commands the
+        adapter's age_s, clipped and action.
+        """
+        try:
+            seen, error = self.observe(tracking, joints), None
+        except ValueError as e:
+            seen, error = "invalid", str(e)
+        if self._stamp is None or seen == "invalid":
+            reason = "invalid_observation" if seen == "invalid" else "no_observation"
+            return (*self._stop(), {"safe_stop": True, "reason": reason, "observation": seen, "error": error})
+        reason = stamp_problem(now, self._stamp, self.cfg)
+        if reason is not None:
+            return (*self._stop(), {"safe_stop": True, "reason": reason, "observation": seen, "error": None})
+        obs = planning.observation(planning.check_window(self.window), self._belt_speed, self.target_yaw)
+        action = self.plan_step(obs)
+        velocity, carriage, status = commands_from_action(action, self._p_target, now, self._stamp, self.cfg)
+        self._p_target = carriage_targets(carriage, self.cfg)
+        return velocity, carriage, {**status, "observation": seen, "error": None}
+
+    def _stop(self) -> tuple[VelocityControl, CarriageCommand | None]:
+        if self._p_target is None:
+            acc = self.cfg.belt_acceleration
+            return VelocityControl(self.cfg.belt_joints, (0.0, 0.0), (acc, acc)), None
+        velocity, carriage = stop_commands(self._p_target, self.cfg)
+        self._p_target = carriage_targets(carriage, self.cfg)
+        return velocity, carriage
+
+
+__all__ = ["LOOP_STOP_REASONS", "PlanStep", "PlannerStep", "RobotLoop"]

@@ -1,0 +1,232 @@
+"""Faults and mismatch (boxjax.sim.faults), the controller's pose filter (control.state_estimate) and the
+world around one episode (control.world): each fault does what it says, replays from the key, and with no
+fault nothing changes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from boxjax import geometry, massdist
+from boxjax.config import DEFAULT, ConfigError
+from boxjax.control.state_estimate import FilterConfig, PoseFilter, make_filter
+from boxjax.control.world import World
+from boxjax.sim import faults as F
+from boxjax.sim import model as sim_model
+
+CFG = DEFAULT
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"obs_noise_mm": -1.0}, "obs_noise_mm"),
+        ({"obs_noise_deg": float("nan")}, "obs_noise_deg"),
+        ({"obs_latency": -1}, "obs_latency"),
+        ({"obs_latency": 1.5}, "obs_latency"),
+        ({"action_latency": 99}, "action_latency"),
+        ({"drop_rate": 1.0}, "drop_rate"),
+        ({"drop_rate": -0.1}, "drop_rate"),
+        ({"friction": 0.0}, "friction"),
+        ({"friction": 0.4, "friction_belt": "left"}, "friction_belt"),
+        ({"friction_belt": "1"}, "friction_belt"),
+        ({"carriage_gain": 0.0}, "carriage_gain"),
+        ({"mass_shift_kg": -1.0}, "mass_shift_kg"),
+        ({"mass_shift_steps": (50, 10)}, "mass_shift_steps"),
+    ],
+)
+def test_a_fault_out_of_range_is_refused_by_name(kwargs, name):
+    with pytest.raises(ConfigError, match=name):
+        F.Faults(**kwargs)
+
+
+def test_faults_round_trip_as_a_dict_and_unknown_fields_are_named():
+    f = F.Faults(obs_noise_mm=3, obs_latency=2, friction=0.4, friction_belt="2", mass_shift_steps=(10, 20))
+    assert F.Faults.from_dict(f.to_dict()) == f
+    with pytest.raises(ConfigError, match="obs_noise"):
+        F.Faults.from_dict({"obs_noise": 3})
+    assert not F.NONE.any and f.any and f.observation and f.plant
+
+
+def _sensor(**kw):
+    return F.Sensor(F.Faults(**kw), F.rng(jax.random.PRNGKey(3)))
+
+
+def test_latency_returns_the_state_k_steps_old():
+    sensor = _sensor(obs_latency=3)
+    states = [np.array([-0.1, 0.1, 0.01 * t, 0.0, 0.0]) for t in range(10)]
+    seen = [sensor.observe(s, np.zeros(2)) for s in states]
+    for t, (s, _, age, fresh) in enumerate(seen):
+        assert fresh and age == min(t, 3)
+        np.testing.assert_array_equal(s, states[max(0, t - 3)])
+
+
+def test_dropped_frames_hold_the_last_one_and_say_how_old_it_is():
+    sensor = _sensor(drop_rate=0.5)
+    states = [np.array([-0.1, 0.1, 0.01 * t, 0.0, 0.0]) for t in range(400)]
+    seen = [sensor.observe(s, np.zeros(2)) for s in states]
+    fresh = np.array([f for *_, f in seen])
+    assert 0.4 < 1 - fresh[1:].mean() < 0.6  # about half the frames lost
+    for t in range(1, 400):
+        s, _, age, f = seen[t]
+        if f:
+            np.testing.assert_array_equal(s, states[t])
+        else:  # the last delivered frame, age counted
+            np.testing.assert_array_equal(s, seen[t - 1][0])
+            assert age == seen[t - 1][2] + 1
+
+
+def test_noise_has_the_stated_spread_and_levels_share_their_draws():
+    truth = np.array([-0.1, 0.1, 0.02, -0.01, 0.3])
+    out = {}
+    for mm, deg in ((1.0, 0.5), (3.0, 1.5)):
+        sensor = _sensor(obs_noise_mm=mm, obs_noise_deg=deg)
+        out[mm] = np.stack([sensor.observe(truth, np.zeros(2))[0] for _ in range(4000)]) - truth
+        np.testing.assert_allclose(out[mm][:, geometry.X].std(), 1e-3 * mm, rtol=0.06)
+        np.testing.assert_allclose(out[mm][:, geometry.YAW].std(), np.radians(deg), rtol=0.06)
+        assert np.all(out[mm][:, [geometry.P1, geometry.P2]] == 0)  # encoders: not noisy
+    np.testing.assert_allclose(out[3.0], 3 * out[1.0], atol=1e-12)  # the same path, scaled
+
+
+def test_action_latency_applies_each_action_k_steps_late():
+    act = F.Actuator(F.Faults(action_latency=2))
+    sent = [np.full(4, float(t)) for t in range(1, 6)]
+    applied = [act.send(a) for a in sent]
+    np.testing.assert_array_equal(applied[0], np.zeros(4))  # nothing has arrived yet: stand still
+    np.testing.assert_array_equal(applied[1], np.zeros(4))
+    for t in range(2, 5):
+        np.testing.assert_array_equal(applied[t], sent[t - 2])
+
+
+def test_world_model_changes_the_friction_of_one_belt_and_the_servo_gains():
+    m = sim_model.box_model(CFG, massdist.named("A", CFG.box))
+    before = (m.pair_friction.copy(), m.actuator_gainprm.copy(), m.actuator_biasprm.copy())
+    F.world_model(m, F.Faults(friction=0.35, friction_belt="2", carriage_gain=0.5, belt_gain=2.0))
+    assert m.pair_friction[0, 0] == before[0][0, 0] == CFG.gripper.friction  # belt 1 untouched
+    assert m.pair_friction[1, 0] == m.pair_friction[1, 1] == 0.35
+    assert m.geom("belt2").id in (m.pair_geom1[1], m.pair_geom2[1])
+    np.testing.assert_allclose(m.actuator_gainprm[2:, 0], 0.5 * before[1][2:, 0])
+    np.testing.assert_allclose(m.actuator_biasprm[2:, 1:3], 0.5 * before[2][2:, 1:3])
+    np.testing.assert_allclose(m.actuator_gainprm[:2, 0], 2.0 * before[1][:2, 0])
+    np.testing.assert_allclose(m.actuator_biasprm[:2, 2], 2.0 * before[2][:2, 2])
+
+
+def test_the_simulators_friction_follows_coulomb_law_closed_form():
+    """Both belts accelerate along +x at the limit (0.6 m/s^2) for 0.4 s. With mu = 0.5 the box follows
+    them (mu g = 4.9 m/s^2 > 0.6): x = a t^2 / 2 = 48 mm. With the simulator's friction set to mu = 0.05
+    (the controller's config unchanged) it slides behind at mu g = 0.49 m/s^2: x = 39 mm."""
+    from boxjax.sim import make_env
+
+    env = make_env(CFG)
+    x = {}
+    for mu in (0.05, 0.5):
+        state = env.reset(jax.random.PRNGKey(0), massdist.named("uniform", CFG.box))
+        F.world_model(state.model, F.Faults(friction=mu))
+        x0 = float(state.s[geometry.X])
+        for _ in range(8):
+            state = env.step(state, [0.24, 0.24, 0.0, 0.0])
+        x[mu] = float(state.s[geometry.X]) - x0
+    g, t = CFG.gripper.gravity, 8 * CFG.gripper.control_dt
+    np.testing.assert_allclose(x[0.5], 0.5 * 0.6 * t**2, rtol=0.1)
+    np.testing.assert_allclose(x[0.05], 0.5 * 0.05 * g * t**2, rtol=0.15)
+
+
+def test_a_mass_shift_keeps_the_mass_and_moves_the_centre_of_mass_where_it_slid():
+    dist = massdist.named("uniform", CFG.box)
+    props = massdist.mass_properties(dist, CFG.box)
+    f = F.Faults(mass_shift_kg=1.0, mass_shift_m=0.10)
+    shifts = [F.mass_shift(dist, CFG, f, F.rng(jax.random.PRNGKey(k))) for k in range(20)]
+    for sh in shifts:
+        assert f.mass_shift_steps[0] <= sh.step <= f.mass_shift_steps[1]
+        np.testing.assert_allclose(sh.mass, float(props.mass), rtol=1e-6)
+        d = sh.com[:2] - np.asarray(props.com[:2])
+        # at most the slid fraction times the slide, in the direction drawn (rounded to the voxel grid)
+        frac = 1.0 / float(props.mass)
+        assert np.linalg.norm(d) <= frac * 0.10 * 1.5 + 1e-9
+        if np.linalg.norm(d) > 1e-4:
+            assert np.cos(np.arctan2(d[1], d[0]) - sh.direction) > 0.5
+        assert np.all(np.linalg.eigvalsh(sh.inertia) > 0)
+    assert len({sh.step for sh in shifts}) > 5  # the step is drawn
+    assert F.mass_shift(dist, CFG, F.NONE, F.rng(jax.random.PRNGKey(0))) is None
+
+
+def test_the_mass_shift_is_written_into_the_native_model():
+    dist = massdist.named("A", CFG.box)
+    m = sim_model.box_model(CFG, dist)
+    body = sim_model.ids(m).box_body
+    sh = F.mass_shift(dist, CFG, F.Faults(mass_shift_kg=2.0), F.rng(jax.random.PRNGKey(1)))
+    sh.apply(m, body)
+    np.testing.assert_allclose(m.body_ipos[body], sh.com, atol=1e-9)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)  # MuJoCo's own centre of mass of the box, in the world
+    R = d.xmat[body].reshape(3, 3)
+    np.testing.assert_allclose(d.xipos[body] - d.xpos[body], R @ sh.com, atol=1e-9)
+    np.testing.assert_allclose(m.body_mass[body], sh.mass, rtol=1e-6)
+    assert sh.done
+
+
+def test_the_filter_tracks_a_moving_box_through_noise_and_latency():
+    dt, lat = CFG.gripper.control_dt, 2
+    f = F.Faults(obs_noise_mm=3.0, obs_noise_deg=1.5, obs_latency=lat)
+    filt = make_filter(FilterConfig(), f, dt)
+    sensor = F.Sensor(f, F.rng(jax.random.PRNGKey(0)))
+    v, w = 0.05, 0.4  # m/s along x, rad/s yaw
+    raw_err, est_err = [], []
+    for t in range(400):
+        truth = np.array([-0.1, 0.1, v * dt * t, 0.0, w * dt * t])
+        s, _, _, fresh = sensor.observe(truth, np.zeros(2))
+        est = filt.step(s, fresh)
+        if t > 40:
+            raw_err.append(s[geometry.X] - truth[geometry.X])
+            est_err.append(est[geometry.X] - truth[geometry.X])
+    raw_err, est_err = np.array(raw_err), np.array(est_err)
+    # the raw observation is late by lat steps: 5 mm behind; the estimate is predicted to the present
+    np.testing.assert_allclose(raw_err.mean(), -v * lat * dt, atol=1e-3)
+    assert abs(est_err.mean()) < 1e-3
+    assert np.sqrt(np.mean(est_err**2)) < np.sqrt(np.mean(raw_err**2))
+
+
+def test_no_filter_with_a_perfect_sensor_unless_asked():
+    assert make_filter(FilterConfig(), F.NONE, 0.05) is None
+    assert isinstance(make_filter(FilterConfig(enabled=True), F.NONE, 0.05), PoseFilter)
+    assert make_filter(FilterConfig(enabled=False), F.Faults(obs_noise_mm=3), 0.05) is None
+    with pytest.raises(ConfigError, match="accel_std"):
+        FilterConfig(accel_std=0.0)
+
+
+def test_with_no_fault_the_world_is_the_identity_and_draws_nothing():
+    w = World(CFG, F.NONE, FilterConfig(), jax.random.PRNGKey(0), massdist.named("A", CFG.box))
+    s, b = np.arange(5, dtype=np.float32), np.ones(2, np.float32)
+    s2, b2 = w.observe(s, b)
+    assert s2 is not None and np.array_equal(s2, s) and np.array_equal(b2, b)
+    a = np.array([0.1, -0.1, 0.0, 0.01])
+    assert w.send(a) is a and not w.before_step(100, None, 0)
+
+
+def test_run_episode_with_faults_replays_and_a_perfect_world_is_unchanged():
+    from boxjax import ControllerConfig, run_episode
+    from boxjax.planners.sampling import SamplingOptions
+
+    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0))
+    box, key = massdist.named("A", CFG.box), jax.random.PRNGKey(2)
+    plain = run_episode(CFG, box, key, ctrl=ctrl, max_steps=80)
+    none = run_episode(CFG, box, key, ctrl=ctrl, max_steps=80, faults=F.Faults())
+    np.testing.assert_array_equal(plain.trace.s, none.trace.s)
+    realistic = F.Faults(obs_noise_mm=3, obs_noise_deg=1.5, obs_latency=2, drop_rate=0.05, friction=0.4)
+    a = run_episode(CFG, box, key, ctrl=ctrl, max_steps=80, faults=realistic)
+    b = run_episode(CFG, box, key, ctrl=ctrl, max_steps=80, faults=realistic)
+    np.testing.assert_array_equal(a.trace.s, b.trace.s)  # drawn from the key: it replays
+    assert not np.array_equal(a.trace.s, plain.trace.s)
+    late = run_episode(CFG, box, key, ctrl=ctrl, max_steps=60, faults=F.Faults(action_latency=3))
+    np.testing.assert_array_equal(late.trace.actions[:3], np.zeros((3, 4)))  # applied 3 steps late
+    with pytest.raises(ValueError, match="native"):
+        run_episode(CFG, box, key, ctrl=ctrl, max_steps=5, backend="mjx", faults=realistic)
+
+
+def test_faults_are_hashable_settings():
+    f = F.Faults(obs_noise_mm=1.0)
+    assert hash(f) == hash(dataclasses.replace(f))
