@@ -25,6 +25,7 @@ from boxjax.config import Config
 from boxjax.control import batch
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import run_episode
+from boxjax.control.state_estimate import FilterConfig
 from boxjax.estimator.belief import learned_estimator
 from boxjax.planners.sampling import SamplingOptions
 from boxjax.viz import animate
@@ -376,6 +377,8 @@ def controller_from_settings(st: dict) -> ControllerConfig:
     c.setdefault("explore_guard", None)  # evaluations written before the guard explored without one
     if c.get("sampling") is not None:
         c["sampling"] = SamplingOptions(**c["sampling"])
+    if isinstance(c.get("pose_filter"), dict):
+        c["pose_filter"] = FilterConfig(**c["pose_filter"])
     pp = c.get("prior_params")
     if isinstance(pp, list | tuple):  # a mixture of priors
         c["prior_params"] = tuple(prior.PriorParams(**p) for p in pp)
