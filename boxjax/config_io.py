@@ -4,7 +4,9 @@ A config file has up to three tables, ``[box]``, ``[gripper]`` and ``[task]``, h
 frozen dataclasses in `boxjax.config` (`BoxConfig`, `GripperConfig`, `TaskConfig`); a field left out keeps
 its default. Units are SI (m, kg, s, rad). `dumps()` writes the defaults in this form (``boxjax config``),
 and ``load(path)`` reads one back: unknown tables or keys, wrong types and wrong tuple lengths are refused
-by name, and the dataclasses' own checks (hardware limits, grid divisible by 4, ...) then apply.
+by name, and the dataclasses' own checks (hardware limits, grid divisible by 4, ...) then apply. A
+``[faults]`` table (`boxjax.sim.faults.Faults`: pose noise, latencies, friction mismatch, a mass shift) may
+stand beside them; it is not part of the Config, the CLI reads it with `load_table`.
 
 The shipped estimator H, calibration and black box W were made for the default config. `require_models`
 refuses a config they were not made for, naming the fields that differ and the command that makes a
@@ -31,6 +33,9 @@ else:  # pragma: no cover (Python 3.10: the backport, a dependency there)
     import tomli as tomllib
 
 SECTIONS: dict[str, type] = {"box": BoxConfig, "gripper": GripperConfig, "task": TaskConfig}
+# Tables a config file may hold beside the Config's: how the simulated world differs from the controller's
+# (`boxjax.sim.faults.Faults`, read by the CLI: `load_table(path, "faults")`).
+OTHER_SECTIONS = ("faults",)
 # The exploration data H learns from depends on the box, the whole gripper and the initial pose noise
 # (the dataset is gathered open loop, so the task's success and failure rules do not enter it).
 ESTIMATOR_FIELDS = (
@@ -114,11 +119,14 @@ def _unknown(where: str, key: str, known) -> ConfigFileError:
 
 
 def from_dict(doc: dict, source: str = "config") -> Config:
-    """A Config from a TOML document's dict (the defaults for everything not given)."""
+    """A Config from a TOML document's dict (the defaults for everything not given). The tables of
+    `OTHER_SECTIONS` are not part of the Config (`load_table` reads them)."""
     parts = {}
     for section, table in doc.items():
+        if section in OTHER_SECTIONS:
+            continue
         if section not in SECTIONS:
-            raise _unknown(source, section, list(SECTIONS))
+            raise _unknown(source, section, [*SECTIONS, *OTHER_SECTIONS])
         if not isinstance(table, dict):
             raise ConfigFileError(f"{source}: [{section}] must be a table of keys, got {table!r}")
         cls = SECTIONS[section]
@@ -144,17 +152,34 @@ def loads(text: str, source: str = "config") -> Config:
     return from_dict(doc, source)
 
 
-def load(path) -> Config:
-    """The Config in a TOML file. Raises ConfigFileError (a ValueError) naming the problem."""
+def _read(path) -> str:
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ConfigFileError(f"{path}: no such config file")
     try:
         with open(path, "rb") as f:
-            text = f.read().decode()
+            return f.read().decode()
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigFileError(f"{path}: unreadable config file ({e})") from e
-    return loads(text, path)
+
+
+def load(path) -> Config:
+    """The Config in a TOML file. Raises ConfigFileError (a ValueError) naming the problem."""
+    return loads(_read(path), os.fspath(path))
+
+
+def load_table(path, section: str) -> dict:
+    """The table `section` (one of OTHER_SECTIONS) of a TOML config file as a dict ({} when absent)."""
+    if section not in OTHER_SECTIONS:
+        raise ValueError(f"{section!r} is not one of the extra tables {OTHER_SECTIONS}")
+    try:
+        doc = tomllib.loads(_read(path))
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigFileError(f"{path}: not valid TOML ({e})") from e
+    table = doc.get(section, {})
+    if not isinstance(table, dict):
+        raise ConfigFileError(f"{path}: [{section}] must be a table of keys, got {table!r}")
+    return table
 
 
 def save(path, cfg: Config) -> str:

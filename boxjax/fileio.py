@@ -37,6 +37,19 @@ def atomic_path(path, suffix: str = ""):
             os.unlink(tmp)
 
 
+def check_writable_dir(path, what: str = "output directory") -> None:
+    """Make sure `path` is (or can be made) a directory we can write files in, before any work is done:
+    it is created if missing, a probe file is written and removed. Raises ValueError naming the problem."""
+    path = os.fspath(path)
+    try:
+        os.makedirs(path, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".boxjax-probe-")
+        os.close(fd)
+        os.remove(probe)
+    except OSError as e:
+        raise ValueError(f"{what} {path!r} cannot be written: {e.strerror or e}") from None
+
+
 def save_figure(fig, path, dpi: int = 110) -> str:
     """Save a matplotlib figure as PNG atomically; returns the path."""
     with atomic_path(path, suffix=".png") as tmp:

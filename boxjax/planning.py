@@ -408,3 +408,15 @@ def next_belt_speed(model, belt_speed, action) -> jax.Array:
     sp = jnp.clip(action[:2], -gr.belt_speed_limit, gr.belt_speed_limit)
     dv = gr.belt_accel_limit * gr.control_dt
     return belt_speed + jnp.clip(sp - belt_speed, -dv, dv)
+
+
+def compensate(model, window, belt_speed, actions):
+    """The window (W, 5) and belt speeds (2,) moved forward over `actions` (D, 4), the actions applied since
+    the window's newest state: a Smith predictor for the loop's delays (a late observation, an action
+    applied late), with the model in the planner's slot. Returns (window (W, 5), belt_speed (2,)) ending
+    at the predicted present; D = 0 returns them unchanged."""
+    if actions.shape[0] == 0:
+        return window, belt_speed
+    predicted = model.rollout_sequence(window, belt_speed, actions)  # (D, 5)
+    belt = jax.lax.scan(lambda b, a: (next_belt_speed(model, b, a), None), belt_speed, actions)[0]
+    return jnp.concatenate([window, predicted.astype(window.dtype)])[-window.shape[0] :], belt

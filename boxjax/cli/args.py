@@ -272,3 +272,34 @@ def planner_options(
         used_by=(*used_by, *prior, when("variant", "paper")),
         help="action -> force map of `boxjax calibrate` for the paper prior (default: the shipped one)",
     )
+
+
+def fault_options(p: argparse.ArgumentParser, *used_by: Condition) -> None:
+    """How the simulated world differs from the controller's (`boxjax.sim.faults.Faults`; a [faults]
+    table of --config sets them too, these override it), and --monitor."""
+    nonneg = ((lambda v: v >= 0), ">= 0")
+    for flag, kind, help_ in (
+        ("--obs-noise-mm", float, "std of gaussian noise on the observed box position (mm)"),
+        ("--obs-noise-deg", float, "std of gaussian noise on the observed box yaw (degrees)"),
+        ("--obs-latency", int, "control steps between the world and the observation (0.05 s each)"),
+        ("--drop-rate", float, "probability that a camera frame is lost (the last one is held), in [0, 1)"),
+        ("--action-latency", int, "control steps between an action sent and applied"),
+        ("--friction", float, "the simulator's box-belt friction (the model keeps the config's)"),
+        ("--mass-shift-kg", float, "mass that slides 10 cm inside the box at a random step (kg)"),
+    ):
+        option(p, flag, type=kind, metavar="X", used_by=used_by, check=nonneg, help=help_)
+    option(
+        p,
+        "--friction-belt",
+        choices=("both", "1", "2"),
+        used_by=(*used_by, needs("friction")),
+        help="which belt has --friction (default both)",
+    )
+    option(
+        p,
+        "--monitor",
+        default="on",
+        choices=("on", "off"),
+        used_by=used_by,
+        help="the runtime safety monitor between the planner and the gripper (off: the paper's controller)",
+    )

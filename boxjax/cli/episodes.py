@@ -14,6 +14,7 @@ from boxjax.cli.args import (
     at_least,
     box_options,
     config_option,
+    fault_options,
     needs,
     option,
     output_options,
@@ -140,6 +141,8 @@ def _controller_config(args):
         from boxjax.planners.sampling import SamplingOptions
 
         sampling = SamplingOptions(gradient_steps=args.gradient_steps)
+    from boxjax.control import monitor
+
     return ControllerConfig(
         rule=args.rule,
         n_samples=args.samples,
@@ -149,7 +152,31 @@ def _controller_config(args):
         sampling=sampling,
         belief=getattr(args, "belief", None) or "mean",
         explore_guard=args.explore_guard or None,
+        monitor=monitor.OFF if getattr(args, "monitor", "on") == "off" else monitor.MonitorConfig(),
     )
+
+
+FAULT_FLAGS = {  # CLI option -> Faults field
+    "obs_noise_mm": "obs_noise_mm",
+    "obs_noise_deg": "obs_noise_deg",
+    "obs_latency": "obs_latency",
+    "drop_rate": "drop_rate",
+    "action_latency": "action_latency",
+    "friction": "friction",
+    "friction_belt": "friction_belt",
+    "mass_shift_kg": "mass_shift_kg",
+}
+
+
+def _faults(args):
+    """The Faults of --config's [faults] table, overridden by the fault options given (validated by name:
+    a bad level is refused before any episode runs)."""
+    from boxjax import config_io
+    from boxjax.sim.faults import Faults
+
+    table = config_io.load_table(args.config, "faults") if getattr(args, "config", None) else {}
+    given = {f: getattr(args, a) for a, f in FAULT_FLAGS.items() if getattr(args, a, None) is not None}
+    return Faults.from_dict({**table, **given})
 
 
 def _estimator(args, cfg):
@@ -203,6 +230,9 @@ def cmd_rotate(args) -> dict:
     if args.replay is not None:
         return _replay(args)
     cfg = load_config(args)
+    faults = _faults(args)
+    if faults.any and args.backend != "native":
+        raise ValueError(f"faults are simulated on the native backend only, not --backend {args.backend}")
     name, dist = the_box(args, cfg)
     ctrl = _controller_config(args)
     ctrl, model, adapter, slot = _model_slot(args, ctrl, cfg)
@@ -217,6 +247,7 @@ def cmd_rotate(args) -> dict:
         force_map=_force_map(args, cfg, ctrl) if model is None else None,
         model=model,
         adapter=adapter,
+        faults=faults,
     )
     summary = {
         "command": "rotate",
@@ -227,6 +258,7 @@ def cmd_rotate(args) -> dict:
         "seed": args.seed,
         "planner": args.planner,
         "variant": args.variant,
+        "faults": faults.to_dict() if faults.any else None,
         **res.summary,
     }
     if args.config:
@@ -363,7 +395,7 @@ def cmd_demo(args) -> dict:
 # evaluate
 
 
-def _evaluate_file_box(args, cfg, est, ctrl):
+def _evaluate_file_box(args, cfg, est, ctrl, faults):
     """--box FILE: --boxes episodes of that one box, episode j with key fold_in(split(seed)[2], j) as in
     `experiments.make_boxes`, as an `experiments.Evaluation` (so --out, --plot and --replay work)."""
     import jax
@@ -388,9 +420,8 @@ def _evaluate_file_box(args, cfg, est, ctrl):
     t0 = time.perf_counter()
     rows, balance, results = [], [], []
     for j in range(n):
-        res = run_episode(
-            cfg, boxes.dist(j), jax.random.wrap_key_data(boxes.keys[j]), estimator=est, ctrl=ctrl
-        )
+        key = jax.random.wrap_key_data(boxes.keys[j])
+        res = run_episode(cfg, boxes.dist(j), key, estimator=est, ctrl=ctrl, faults=faults)
         results.append(res)
         rows.append(experiments._row(j, boxes, res, cfg))
         balance.append(np.asarray(res.trace.balance_error, np.float32))
@@ -400,7 +431,7 @@ def _evaluate_file_box(args, cfg, est, ctrl):
         sys.stderr.write("\n")
     summary = {
         **experiments.summarize(rows),
-        **experiments.settings(args.estimator, ctrl, args.seed, "file"),
+        **experiments.settings(args.estimator, ctrl, args.seed, "file", faults),
         "box": args.box,
         "wall_s": time.perf_counter() - t0,
     }
@@ -413,19 +444,25 @@ def cmd_evaluate(args) -> dict:
     from boxjax import config_io
     from boxjax.control import batch
     from boxjax.experiments import evaluation as experiments
+    from boxjax.fileio import check_writable_dir
 
     if not args.one_at_a_time:
         batch.use_host_devices()  # one host device per core: the batched planner shards boxes over them
 
     cfg = load_config(args)
+    faults = _faults(args)
     if args.out and os.path.exists(args.out) and os.listdir(args.out) and not args.force:
         raise ValueError(f"--out {args.out} exists and is not empty; pass --force to overwrite its results")
+    if args.out:  # found now, not after every episode has run
+        check_writable_dir(args.out, "--out")
+    if args.plot:
+        check_writable_dir(os.path.dirname(os.path.abspath(args.plot)), "--plot's directory")
     ctrl = _controller_config(args)
     if ctrl.variant == "paper":
         cli_models.require_models(cfg, calibration=True, config_path=args.config)
     est = _estimator(args, cfg)
     if args.box is not None:
-        ev = _evaluate_file_box(args, cfg, est, ctrl)
+        ev = _evaluate_file_box(args, cfg, est, ctrl, faults)
     else:
         ev = experiments.evaluate(
             cfg,
@@ -439,6 +476,7 @@ def cmd_evaluate(args) -> dict:
             estimator_fn=None if est == "oracle" else est,
             batched=False if args.one_at_a_time else None,
             slots=args.slots,
+            faults=faults,
         )
     summary = {"command": "evaluate", **ev.summary}
     if args.config:
@@ -529,6 +567,7 @@ def add_parsers(sub) -> None:
     option(r, "--backend", default="native", choices=BACKENDS, used_by=(no_replay,), help="simulator")
     option(r, "--seed", type=int, default=0, used_by=(no_replay,), help="the episode's PRNG seed")
     planner_options(r, no_replay, prior=(prior_only,))
+    fault_options(r, no_replay)
     belief_option(r, no_replay, prior_only, when("estimator", "learned", owner="the learned estimator"))
     option(
         r,
@@ -609,6 +648,7 @@ def add_parsers(sub) -> None:
         help="estimator checkpoint (default: shipped)",
     )
     planner_options(v, calibration=False)
+    fault_options(v)
     belief_option(v, when("estimator", "learned", owner="the learned estimator"))
     batchable = when("planner", "sampling", "paper", owner="the batched jnp planners")
     option(

@@ -50,16 +50,21 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from boxjax import massdist, planning
+from boxjax import geometry, massdist, planning
 from boxjax.config import Config
 from boxjax.control import episode as controller
+from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import EpisodeResult
 from boxjax.control.models import planning_model
+from boxjax.control.monitor import Monitor
+from boxjax.control.world import World
 from boxjax.estimator import explore
 from boxjax.estimator.belief import decide
 from boxjax.planners.registry import make_planner
 from boxjax.sim.episode import EpisodeTrace
+from boxjax.sim.faults import NONE as NO_FAULTS
+from boxjax.sim.faults import Faults
 from boxjax.sim.native import NativeBatch
 
 # Boxes per planner call and device: wider calls cost little less per box (benchmarks/episodes.py) and
@@ -89,6 +94,12 @@ def supports(ctrl: ControllerConfig) -> str | None:
     if ctrl.observer_gain > 0:
         return "the drift observer (observer_gain > 0) runs one box at a time"
     return None
+
+
+@lru_cache(maxsize=1)
+def _batched_compensate():
+    """`planning.compensate` vmapped over boxes and jitted."""
+    return jax.jit(jax.vmap(planning.compensate))
 
 
 @lru_cache(maxsize=8)
@@ -143,35 +154,47 @@ def _set_slot(batch, k, tree):
 
 
 class _Record:
-    """One box's episode as it happens (host lists; turned into an EpisodeTrace at the end)."""
+    """One box's episode as it happens (host lists; turned into an EpisodeTrace at the end): the true
+    world's states and applied actions, and the controller's view through its `World` (the states it
+    estimated, the actions it sent)."""
 
-    def __init__(self, sim: NativeBatch, b: int):
+    def __init__(self, sim: NativeBatch, b: int, world: World):
+        self.world = world
+        world.prepare(sim.models[b])
         self.s, self.belt_speed, self.balance = (
             [sim.s[b].copy()],
             [sim.belt_speed[b].copy()],
             [float(sim.balance_error[b])],
         )
+        self.seen = [world.observe(sim.s[b], sim.belt_speed[b])]
+        self.sent: list[np.ndarray] = []
+        self.guard_steps: list[int] = []
+        self.monitor: Monitor | None = None
         self.actions: list[np.ndarray] = []
         self.clipped: list[bool] = []
         self.plan_ms: list[float] = []
         self.mpc_steps = 0  # planner calls so far
         self.adapt_s, self.adaptations = 0.0, 0  # online adaptation: wall time, calls
 
-    def add(self, sim: NativeBatch, b: int, action) -> None:
-        self.actions.append(np.asarray(action, np.float64))
+    def send(self, sim: NativeBatch, b: int, action) -> np.ndarray:
+        """The action the gripper applies when the controller sends `action` at this step (and the mass
+        slides, if this is its step)."""
+        self.sent.append(np.asarray(action, np.float64))
+        self.world.before_step(len(self.actions), sim.models[b], sim.ids.box_body)
+        return self.world.send(np.asarray(action, np.float64))
+
+    def add(self, sim: NativeBatch, b: int, applied) -> None:
+        self.actions.append(np.asarray(applied, np.float64))
         self.s.append(sim.s[b].copy())
         self.belt_speed.append(sim.belt_speed[b].copy())
         self.balance.append(float(sim.balance_error[b]))
         self.clipped.append(bool(sim.clipped[b]))
+        self.seen.append(self.world.observe(sim.s[b], sim.belt_speed[b]))
 
     def exploration(self) -> dict:
-        """The episode so far as the estimators and adapters take it: s (T+1, 5), belt_speed (T+1, 2),
-        actions (T, 4)."""
-        return {
-            "s": np.stack(self.s),
-            "belt_speed": np.stack(self.belt_speed),
-            "actions": np.asarray(self.actions, np.float64).reshape(-1, 4),
-        }
+        """The episode so far as the controller knows it, as the estimators and adapters take it: the
+        states and belt speeds it saw, s (T+1, 5) and belt_speed (T+1, 2), and the actions it sent (T, 4)."""
+        return controller._controller_data(self.seen, self.sent)
 
     def trace(self, cfg: Config, wall_s: float) -> EpisodeTrace:
         n = len(self.s)
@@ -193,7 +216,8 @@ def _result(cfg, truth, sim: NativeBatch, b: int, rec: _Record, decided, n_explo
     summary = controller.episode_summary(
         cfg, truth, final, est, belief, why, n_explore=int(n_explore), lost_exploring=bool(lost),
         wall_s=wall, plan_ms=rec.plan_ms, adapt_s=rec.adapt_s, adaptations=rec.adaptations,
-        estimator=estimator,
+        estimator=estimator, monitor=rec.monitor, guard_steps=rec.guard_steps,
+        balance_errors=np.asarray(rec.balance),
     )  # fmt: skip
     timed = controller.timed_calls(rec.plan_ms)
     return EpisodeResult(summary, rec.trace(cfg, wall), belief, truth, np.asarray(timed))
@@ -213,6 +237,7 @@ def run_episodes(
     model: Any = None,
     adapter: Any = None,
     order: str = "longest_first",
+    faults: Faults = NO_FAULTS,
 ) -> list[EpisodeResult]:
     """`controller.run_episode(cfg, truths[j], keys[j], estimator=..., ctrl=...)` for every box j, batched
     (see the module docstring). Returns one EpisodeResult per box, in order; `wall_s` of each is the
@@ -230,6 +255,8 @@ def run_episodes(
         box's model every `ctrl.adapt_every` of its MPC steps.
       order: which waiting box gets the next free slot: "longest_first" (by `expected_length` of its
         belief, ties in the given order) or "given" (the order of `truths`).
+      faults: how each box's simulated world differs from the controller's (`run_episode`'s), drawn from
+        the box's own key; with `ctrl.monitor` enabled the runtime safety monitor checks every action.
     Raises:
       ValueError: an unsupported controller (`supports`), no boxes, mismatched keys, slots < 1, an
         adapter with ctrl.adapt_every < 1, or an unknown order.
@@ -254,7 +281,10 @@ def run_episodes(
     key_reset = [k[0] for k in split]
     key_plan = [k[1] for k in split]
     sim = NativeBatch(cfg, truths, key_reset)
-    rec = [_Record(sim, b) for b in range(B)]
+    rec = [
+        _Record(sim, b, World(cfg, faults, ctrl.pose_filter, _as_key(keys[b]), truths[b])) for b in range(B)
+    ]
+    delay = rec[0].world.delay
     results: list[EpisodeResult | None] = [None] * B
     decided: list[tuple] = [({}, None, None)] * B
 
@@ -273,15 +303,18 @@ def run_episodes(
     while exploring.any():
         acts, live = np.zeros((B, 4)), np.zeros(B, bool)
         for b in np.flatnonzero(exploring):
-            a = (
-                None
-                if sim.done[b] or sim.t[b] >= max_steps
-                else guards[b].next(sim.s[b], sim.balance_error[b])
-            )
+            if sim.done[b] or sim.t[b] >= max_steps:
+                a = None
+            else:  # what the controller sees (with a perfect sensor the env's own state and balance error)
+                s_seen = rec[b].seen[-1][0]
+                bal = geometry.balance_error(s_seen) if rec[b].world.active else sim.balance_error[b]
+                a = guards[b].next(s_seen, bal)
             if a is None:
                 exploring[b] = False
             else:
-                acts[b], live[b] = a, True
+                if guards[b].tripped:
+                    rec[b].guard_steps.append(len(rec[b].actions))
+                acts[b], live[b] = rec[b].send(sim, b, a), True
         if not live.any():
             break
         sim.step(acts, live)
@@ -316,19 +349,25 @@ def run_episodes(
         put, n_dev = _sharding()
         slots = SLOTS_PER_DEVICE * n_dev if slots is None else slots
         width = -(-min(slots, len(queue)) // n_dev) * n_dev  # a multiple of the devices: equal shards
-        windows = {b: controller.first_window(np.stack(rec[b].s)) for b in queue}
+        windows = {b: controller.first_window(np.stack([s for s, _ in rec[b].seen])) for b in queue}
+        compensate_b = _batched_compensate()
 
-        def observations(boxes_: list[int]) -> planning.Observation:
-            """The planner's observations of these boxes, stacked (one host -> device copy per field)."""
+        def observations(boxes_: list[int], model_b=None) -> planning.Observation:
+            """The planner's observations of these boxes, stacked (one host -> device copy per field),
+            predicted over the loop's delays with each box's model (`planning.compensate`)."""
             w = np.stack(
                 [planning.check_window(np.asarray(windows[b][-planning.MIN_WINDOW :])) for b in boxes_]
             )
-            return put(planning.observation(w, sim.belt_speed[boxes_], sim.target_yaw[boxes_]))
+            belt = np.stack([rec[b].seen[-1][1] for b in boxes_]).astype(np.float32)
+            if delay and model_b is not None:
+                flying = np.stack([controller.in_flight(rec[b].sent, delay) for b in boxes_])
+                w, belt = compensate_b(model_b, put(w), put(belt), put(flying))
+            return put(planning.observation(w, belt, sim.target_yaw[boxes_]))
 
         first = queue[0]
         slot_box: list[int | None] = [None] * width
         model_b = put(_stack([models[first]] * width))
-        plan_b = init_b(observations([first] * width))
+        plan_b = init_b(observations([first] * width, model_b))
         keys_b = put(jnp.stack([key_plan[first]] * width))
 
         def admit(k: int) -> None:
@@ -336,9 +375,12 @@ def run_episodes(
             b = queue.popleft()
             slot_box[k] = b
             model_b = put(_set_slot(model_b, k, models[b]))
-            first_plan = jax.tree.map(lambda x: x[0], init_b(observations([b] * n_dev)))
+            one = put(_stack([models[b]] * n_dev))
+            first_plan = jax.tree.map(lambda x: x[0], init_b(observations([b] * n_dev, one)))
             plan_b = put(_set_slot(plan_b, k, first_plan))
             keys_b = put(keys_b.at[k].set(key_plan[b]))
+            if ctrl.monitor.enabled:
+                rec[b].monitor = Monitor(cfg, ctrl.monitor)
 
         for k in range(width):
             if queue:
@@ -354,13 +396,19 @@ def run_episodes(
                 model_b = put(_set_slot(model_b, k, models[b]))
                 r.adapt_s += time.perf_counter() - t0
                 r.adaptations += 1
-            obs_b = observations([b if b is not None else live[0] for b in slot_box])
+            obs_b = observations([b if b is not None else live[0] for b in slot_box], model_b)
             pair = jax.vmap(jax.random.split)(keys_b)
             keys_b, key_step = pair[:, 0], pair[:, 1]
             t0 = time.perf_counter()
             actions, plan_b, _ = optimize_b(key_step, model_b, obs_b, plan_b)
             actions = np.asarray(actions, np.float64)
             ms = 1e3 * (time.perf_counter() - t0)
+            if ctrl.monitor.enabled:  # the runtime safety monitor, all slots in one call
+                errors, stops = monitor.check_batch(
+                    cfg, model_b, obs_b.window, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
+                    ctrl.monitor.horizon,
+                )  # fmt: skip
+                errors, stops, belts = np.asarray(errors), np.asarray(stops), np.asarray(obs_b.belt_speed)
             full = np.zeros((B, 4))
             active = np.zeros(B, bool)
             for k, b in enumerate(slot_box):
@@ -370,16 +418,22 @@ def run_episodes(
                     raise RuntimeError(
                         f"planner produced a non-finite action {actions[k].tolist()} for box {b}; stopping"
                     )
-                full[b], active[b] = actions[k], True
-                rec[b].plan_ms.append(ms)
-                rec[b].mpc_steps += 1
+                a, r = actions[k], rec[b]
+                if r.monitor is not None:
+                    a = r.monitor.decide(
+                        len(r.actions), a, errors[k], stops[k], r.world.y_std(), r.world.stale, belts[k]
+                    )
+                full[b], active[b] = r.send(sim, b, a), True
+                r.plan_ms.append(ms)
+                r.mpc_steps += 1
             sim.step(full, active)
             for k, b in enumerate(slot_box):
                 if b is None:
                     continue
                 rec[b].add(sim, b, full[b])
-                windows[b].append(sim.s[b].copy())
-                if sim.done[b] or sim.t[b] >= max_steps:
+                windows[b].append(rec[b].seen[-1][0].copy())
+                ended = rec[b].monitor is not None and rec[b].monitor.ended
+                if sim.done[b] or sim.t[b] >= max_steps or ended:
                     finish(b, int(n_explore[b]), False)
                     slot_box[k] = None
                     models.pop(b)
@@ -396,33 +450,41 @@ def replay_episode(
     *,
     estimator: Any = "oracle",
     ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008
+    faults: Faults = NO_FAULTS,
 ) -> EpisodeResult:
-    """An episode again from the actions (T, 4) it sent, with its episode key: the physics re-simulated
-    (the same states bit for bit: `NativeBatch` steps each world as `NativeEnv` does), the estimator and
-    the hazard decision re-run on the exploration, the summary as the episode's own.
+    """An episode again from the actions (T, 4) the gripper applied, with its episode key and faults: the
+    physics re-simulated (the same states bit for bit: `NativeBatch` steps each world as `NativeEnv`
+    does, the plant's faults and the mass shift drawn again from the key), the controller's view through
+    the same sensor draws, the estimator and the hazard decision re-run on the exploration, the summary
+    as the episode's own (without the monitor's record: its decisions are in the actions).
 
     Raises:
       ValueError: the episode ends before its actions do, or its exploration is not the one the
-        controller's (guarded) exploration sends (another box, key or config).
+        controller's (guarded) exploration sends (another box, key, config or faults).
     """
     t0 = time.perf_counter()
     key_reset, _ = jax.random.split(_as_key(key))
     sim = NativeBatch(cfg, [truth], [key_reset])
-    rec = _Record(sim, 0)
+    world = World(cfg, faults, ctrl.pose_filter, _as_key(key), truth)
+    rec = _Record(sim, 0, world)
     actions = np.asarray(actions, np.float64).reshape(-1, 4)
+    late = faults.action_latency  # the action sent at step t is applied at t + late
+    sent = np.concatenate([actions[late:], np.zeros((min(late, len(actions)), 4))])
     guard = explore.Guarded(cfg, ctrl.explore_guard) if ctrl.explore else None
     exploring, n_explore, lost = guard is not None, 0, False
     decided: tuple = ({}, None, None)
 
     def exploration_over(recorded=None) -> bool:
-        # the guard is asked with the states the episode had, so it ends the exploration where it did
+        # the guard is asked with the states the controller saw, so it ends the exploration where it did
         if not exploring:
             return False
-        expected = None if sim.done[0] else guard.next(sim.s[0], sim.balance_error[0])
+        s_seen = rec.seen[-1][0]
+        bal = geometry.balance_error(s_seen) if world.active else sim.balance_error[0]
+        expected = None if sim.done[0] else guard.next(s_seen, bal)
         if expected is not None and recorded is not None and not np.allclose(expected, recorded):
             raise ValueError(
                 f"recorded action {len(rec.actions)} {np.round(recorded, 4).tolist()} is not the "
-                f"exploration's {np.round(expected, 4).tolist()} (another box, key or config?)"
+                f"exploration's {np.round(expected, 4).tolist()} (another box, key, config or faults?)"
             )
         return expected is None
 
@@ -434,9 +496,11 @@ def replay_episode(
     for t, a in enumerate(actions):
         if sim.done[0]:
             raise ValueError(f"the episode ended at step {t}, before its {len(actions)} recorded actions did")
-        if exploration_over(a):
+        if exploration_over(sent[t] if t + late < len(actions) else None):
             exploring = False
             decided = decided_now()
+        world.before_step(t, sim.models[0], sim.ids.box_body)
+        rec.sent.append(sent[t])
         sim.step(a[None], np.ones(1, bool))
         rec.add(sim, 0, a)
         n_explore += int(exploring)

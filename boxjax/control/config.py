@@ -6,6 +6,7 @@ import dataclasses
 from typing import Any
 
 from boxjax import prior
+from boxjax.control.monitor import MonitorConfig
 from boxjax.control.state_estimate import FilterConfig
 from boxjax.planners import paper as planner
 from boxjax.planners import registry
@@ -56,6 +57,9 @@ class ControllerConfig:
     # The controller's filter over the observed box pose (`state_estimate.FilterConfig`; used when the
     # sensor is imperfect: `boxjax.sim.faults`).
     pose_filter: FilterConfig = FilterConfig()
+    # The runtime safety monitor between the planner and the gripper (`boxjax.control.monitor`; on by
+    # default, `MonitorConfig(enabled=False)` or `monitor.OFF`: the paper's controller, which has none).
+    monitor: MonitorConfig = MonitorConfig()
 
     def __post_init__(self):
         if self.explore_guard is not None and not 0 < self.explore_guard < 1:

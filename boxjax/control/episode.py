@@ -20,8 +20,11 @@ import numpy as np
 
 from boxjax import geometry, massdist, planning, task
 from boxjax.config import Config
+from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig
 from boxjax.control.models import planning_model
+from boxjax.control.monitor import Monitor
+from boxjax.control.monitor import crossing as monitor_crossing
 from boxjax.control.world import World
 from boxjax.estimator import com_error_cm, explore
 from boxjax.estimator.belief import decide
@@ -58,6 +61,15 @@ def _controller_data(seen, sent) -> dict:
     }
 
 
+_compensate = jax.jit(planning.compensate)
+
+
+def in_flight(sent: list, n: int) -> np.ndarray:
+    """(n, 4) float32: the last n actions sent (zeros before the first: the drives start at rest)."""
+    last = [np.zeros(4)] * max(0, n - len(sent)) + list(sent[-n:] if n else [])
+    return np.asarray(last, np.float32).reshape(n, 4)
+
+
 def first_window(s) -> list:
     """The planner's first state window: the last planning.MIN_WINDOW states of `s` (T+1, 5), the oldest
     repeated when the episode is shorter (no exploration)."""
@@ -87,8 +99,17 @@ def episode_summary(
     adapt_s: float = 0.0,
     adaptations: int = 0,
     estimator: Any = "oracle",
+    monitor: Monitor | None = None,
+    guard_steps=(),
+    balance_errors=None,
 ) -> dict:
-    """An episode's summary (plain data; the CLI's JSON) from the final state's `State.summary()`."""
+    """An episode's summary (plain data; the CLI's JSON) from the final state's `State.summary()`.
+
+    With the runtime safety monitor (`monitor`): an episode the monitor ended stopped, or that reached
+    the step cap while stopped, with the box still balanced and on the belts, is `safe_stop` (its
+    reason in `safe_stop_reason`), neither a success nor a failure. `crossing` says whether the TRUE
+    balance error (`balance_errors`, (T+1,)) ever passed the limit, `unnoticed_crossing` whether that
+    happened with no stop issued (the monitor's, or the exploration guard's at `guard_steps`)."""
     aborted = why is not None
     timed = timed_calls(plan_ms)
     summary = {
@@ -113,8 +134,22 @@ def episode_summary(
         summary["com_error_cm"] = float(com_error_cm(belief, truth, cfg.box))
         if est.get("hazard_prob") is not None:
             summary["hazard_prob"] = float(est["hazard_prob"])
-    if not aborted and not final["done"]:
+    safe_stop = None
+    if monitor is not None and monitor.stopped and not final["success"] and not aborted:
+        failed = final["done"]  # the true world ended the episode: a failure the stop did not prevent
+        safe_stop = None if failed else monitor.reason
+    if not aborted and not final["done"] and safe_stop is None:
         summary["failed_reason"] = task.REASONS[task.STEP_CAP]
+    summary["safe_stop"] = safe_stop is not None
+    summary["safe_stop_reason"] = safe_stop
+    if monitor is not None:
+        summary.update(monitor.record())
+    crossed, unnoticed = (False, False)
+    if balance_errors is not None:
+        stopping = () if monitor is None else monitor.stopping_steps
+        crossed, unnoticed = monitor_crossing(balance_errors, cfg.task.balance_limit, stopping, guard_steps)
+    summary["crossing"] = crossed
+    summary["unnoticed_crossing"] = unnoticed
     return summary
 
 
@@ -182,11 +217,14 @@ def run_episode(
     # 1. exploration (paper §2.2): a fixed open-loop sequence, guarded (`explore.Guarded`)
     n_explore = 0
     guard = explore.Guarded(cfg, ctrl.explore_guard if model is None else None) if ctrl.explore else None
+    guard_steps: list[int] = []  # control steps of the guard's re-centring (a stop, for `crossing`)
     while guard is not None and not bool(state.done):
         s_seen = seen[-1][0]  # with a perfect sensor the true state, and its balance error as the env has it
         a = guard.next(s_seen, geometry.balance_error(s_seen) if world.active else state.balance_error)
         if a is None:
             break
+        if guard.tripped:
+            guard_steps.append(len(actions))
         state = act(state, a)
     n_explore = len(actions)
     exploration = _controller_data(seen, sent)
@@ -211,14 +249,18 @@ def run_episode(
 
         def observe(state):
             w = planning.check_window(np.asarray(window[-planning.MIN_WINDOW :]))
+            b = np.asarray(seen[-1][1], np.float32)
+            if world.delay:  # predicted over the loop's delays to when the next action applies
+                w, b = _compensate(model, w, b, in_flight(sent, world.delay))
             sim = state if mpc.privileged else None
-            return planning.observation(w, np.asarray(seen[-1][1], np.float32), state.target_yaw, sim)
+            return planning.observation(w, b, state.target_yaw, sim)
 
         plan_state = mpc.init(observe(state))
         if ctrl.observer_gain > 0:
             model = planning.DriftCorrected(model, jnp.zeros(3, jnp.float32))
+        mon = Monitor(cfg, ctrl.monitor) if ctrl.monitor.enabled else None
         mpc_steps = 0
-        while not bool(state.done) and len(actions) < max_steps:
+        while not bool(state.done) and len(actions) < max_steps and not (mon is not None and mon.ended):
             if adapter is not None and mpc_steps > 0 and mpc_steps % ctrl.adapt_every == 0:
                 t0 = time.perf_counter()
                 model = adapter(model, _controller_data(seen, sent))
@@ -233,6 +275,19 @@ def run_episode(
             plan_ms.append(1e3 * (time.perf_counter() - t0))
             if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
                 raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
+            if mon is not None:  # the runtime safety monitor: send the action, or stop
+                errors, stop_a = monitor.check(
+                    cfg, model, obs.window, obs.belt_speed, jnp.asarray(a, jnp.float32), ctrl.monitor.horizon
+                )
+                a = mon.decide(
+                    len(actions),
+                    a,
+                    np.asarray(errors),
+                    np.asarray(stop_a),
+                    world.y_std(),
+                    world.stale,
+                    np.asarray(obs.belt_speed),
+                )
             if ctrl.observer_gain > 0:
                 predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)
             state = act(state, a)
@@ -240,12 +295,15 @@ def run_episode(
             if ctrl.observer_gain > 0 and not bool(state.done):
                 drift = planning.update_drift(model.drift, predicted, seen[-1][0], ctrl.observer_gain)
                 model = dataclasses.replace(model, drift=drift)
+    else:
+        mon = None
     wall = time.perf_counter() - t_start
 
     trace = EpisodeTrace.from_states(rows, actions, cfg.gripper.control_dt, wall)
     summary = episode_summary(
         cfg, truth, state.summary(), est, belief, why, n_explore=n_explore, lost_exploring=lost_exploring,
         wall_s=wall, plan_ms=plan_ms, adapt_s=adapt_s, adaptations=adaptations, estimator=estimator,
+        monitor=mon, guard_steps=guard_steps, balance_errors=trace.balance_error,
     )  # fmt: skip
     timed = timed_calls(plan_ms)
     return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))

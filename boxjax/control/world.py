@@ -19,7 +19,7 @@ import numpy as np
 
 from boxjax import massdist
 from boxjax.config import Config
-from boxjax.control.state_estimate import FilterConfig, make_filter
+from boxjax.control.state_estimate import FilterConfig, make_filter, model_delay
 from boxjax.sim import faults as F
 
 
@@ -34,6 +34,10 @@ class World:
     ):
         self.faults = faults
         self.active = faults.any
+        self.stale = 0  # steps since the last fresh frame
+        # control steps between the newest estimate and the application of the next action, which the
+        # controller bridges with its model (`planning.compensate`)
+        self.delay = model_delay(pose_filter, faults)
         if not self.active:
             self.sensor = self.actuator = self.filter = self.shift = None
             return
@@ -42,7 +46,6 @@ class World:
         self.sensor = F.Sensor(faults, gen) if faults.observation else None
         self.actuator = F.Actuator(faults) if faults.action_latency else None
         self.filter = make_filter(pose_filter, faults, cfg.gripper.control_dt)
-        self.stale = 0  # steps since the last fresh frame
 
     def prepare(self, model) -> None:
         """Apply the plant mismatch to this box's native model (in place)."""
@@ -60,6 +63,15 @@ class World:
         if self.filter is not None:
             s = self.filter.step(s, fresh)
         return np.asarray(s, np.float32), np.asarray(belt_speed, np.float32)
+
+    def y_std(self) -> float:
+        """(m) the standard deviation of the controller's estimate of the box's y: the filter's, the
+        sensor's noise when the raw observations are used, 0 with a perfect sensor."""
+        if self.filter is not None:
+            return self.filter.y_std()
+        if self.sensor is not None:
+            return 1e-3 * self.faults.obs_noise_mm
+        return 0.0
 
     def send(self, action) -> np.ndarray:
         """The action (4,) the gripper applies this step, for `action` sent now."""

@@ -22,12 +22,15 @@ import numpy as np
 
 from boxjax import fileio, massdist, prior
 from boxjax.config import Config
-from boxjax.control import batch
+from boxjax.control import batch, monitor
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import run_episode
+from boxjax.control.monitor import MonitorConfig
 from boxjax.control.state_estimate import FilterConfig
 from boxjax.estimator.belief import learned_estimator
 from boxjax.planners.sampling import SamplingOptions
+from boxjax.sim.faults import NONE as NO_FAULTS
+from boxjax.sim.faults import Faults
 from boxjax.viz import animate
 
 HAZARD_FAMILIES = ("gaussian", "items")
@@ -108,11 +111,14 @@ def make_boxes(cfg: Config, n_safe: int, n_hazardous: int, seed: int, family: st
 
 
 def outcome(summary: dict) -> str:
-    """One word for an episode: "success", "aborted", or the failure reason."""
+    """One word for an episode: "success", "aborted", "safe_stop" (the runtime safety monitor stopped it
+    with the box balanced), or the failure reason."""
     if summary["success"]:
         return "success"
     if summary["aborted"]:
         return "aborted"
+    if summary.get("safe_stop"):
+        return "safe_stop"
     return str(summary["failed_reason"])
 
 
@@ -132,6 +138,10 @@ def _row(j: int, boxes: EvalBoxes, res, cfg: Config) -> dict:
         "max_balance_error_m": float(s["max_balance_error_m"]),
         "final_yaw_error_deg": math.degrees(float(s["final_yaw_error_rad"])),
         "lost_exploring": bool(s.get("lost_exploring", False)),
+        "safe_stop_reason": s.get("safe_stop_reason"),
+        "monitor_stops": int(s.get("monitor_stops", 0)),
+        "crossing": bool(s.get("crossing", False)),
+        "unnoticed_crossing": bool(s.get("unnoticed_crossing", False)),
         "plan_ms_median": s["plan_ms_median"],
         "wall_s": float(s["wall_s"]),
     }
@@ -154,7 +164,8 @@ def summarize(rows: list[dict]) -> dict:
     haz = [r for r in rows if r["hazardous"]]
     n_ok = sum(r["outcome"] == "success" for r in safe)
     lo, hi = wilson_interval(n_ok, len(safe))
-    failures = Counter(r["outcome"] for r in safe if r["outcome"] not in ("success", "aborted"))
+    failures = Counter(r["outcome"] for r in safe if r["outcome"] not in ("success", "aborted", "safe_stop"))
+    stops = [r for r in safe if r["outcome"] == "safe_stop"]
     turned = [r for r in safe if r["outcome"] == "success"]
     refused = sum(r["outcome"] == "aborted" for r in haz)
     return {
@@ -163,7 +174,13 @@ def summarize(rows: list[dict]) -> dict:
         "safe_success_rate": n_ok / len(safe) if safe else None,
         "safe_success_ci95": [lo, hi] if safe else None,
         "false_aborts": sum(r["outcome"] == "aborted" for r in safe),
+        "safe_stops": len(stops),
+        "safe_stop_reasons": dict(sorted(Counter(r.get("safe_stop_reason") for r in stops).items())),
         "failures": dict(sorted(failures.items())),
+        # the TRUE balance error passed the limit (any box) / with no stop issued before it
+        "crossings": sum(r.get("crossing", False) for r in rows),
+        "unnoticed_crossings": sum(r.get("unnoticed_crossing", False) for r in rows),
+        "monitor_stops": sum(r.get("monitor_stops", 0) for r in rows),
         "lost_exploring": sum(r["lost_exploring"] for r in safe),
         "hazardous_boxes": len(haz),
         "hazard_aborted": refused,
@@ -187,13 +204,16 @@ class Evaluation(NamedTuple):
     actions: list[np.ndarray] | None = None  # (T_j, 4) per episode: what was sent (`replay` re-simulates)
 
 
-def settings(estimator: str, ctrl: ControllerConfig, seed: int, family: str) -> dict:
+def settings(
+    estimator: str, ctrl: ControllerConfig, seed: int, family: str, faults: Faults = NO_FAULTS
+) -> dict:
     """What an evaluation ran with (enough to rebuild the same episodes)."""
     c = dataclasses.asdict(ctrl)
     return {
         "estimator": estimator,
         "seed": seed,
         "hazard_family": family,
+        "faults": faults.to_dict(),
         "controller": json.loads(
             json.dumps(c, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
         ),
@@ -213,6 +233,7 @@ def evaluate(
     estimator_fn: Any = None,
     batched: bool | None = None,
     slots: int | None = None,
+    faults: Faults = NO_FAULTS,
 ) -> Evaluation:
     """Run one closed-loop episode on each of n_safe random label-safe boxes and n_hazardous hazardous
     boxes (paper §4.3). Every episode ends with an outcome: success, aborted (refused after exploring),
@@ -220,7 +241,10 @@ def evaluate(
 
     Args:
       estimator: "oracle" (the true distribution) or "learned" (the shipped H, or `estimator_fn`).
-      ctrl: the controller (planner, prior variant, options). family: the hazardous boxes' family.
+      ctrl: the controller (planner, prior variant, options, its runtime safety monitor). family: the
+        hazardous boxes' family.
+      faults: how the simulated world differs from the controller's (`boxjax.sim.faults`), each box's drawn
+        from its own episode key.
       batched: run the episodes together (`boxjax.control.batch`: `slots` boxes per planner call; default
       where
         the controller allows it, `batch.supports`) or one at a time (`controller.run_episode`). The two
@@ -267,10 +291,12 @@ def evaluate(
     dists = [boxes.dist(j) for j in range(len(boxes))]
     keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in range(len(boxes))]
     if batched:
-        batch.run_episodes(cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, progress=done)
+        batch.run_episodes(
+            cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, progress=done, faults=faults
+        )
     else:
         for j in range(len(boxes)):
-            done(j, run_episode(cfg, dists[j], keys[j], estimator=est, ctrl=ctrl))
+            done(j, run_episode(cfg, dists[j], keys[j], estimator=est, ctrl=ctrl, faults=faults))
     for j, res in enumerate(results):
         rows.append(_row(j, boxes, res, cfg))
         balance.append(np.asarray(res.trace.balance_error, np.float32))
@@ -278,7 +304,7 @@ def evaluate(
         bar.close()
     summary = {
         **summarize(rows),
-        **settings(estimator, ctrl, seed, family),
+        **settings(estimator, ctrl, seed, family, faults),
         "batched": bool(batched),
         "wall_s": time.perf_counter() - t0,
     }
@@ -327,14 +353,14 @@ def animate_failures(ev: Evaluation, cfg: Config, out_dir, max_frames: int | Non
     ctrl = controller_from_settings(ev.summary) if "controller" in ev.summary else ControllerConfig()
     paths = []
     for row in ev.rows:
-        failed = (
-            row["outcome"] != "aborted" if row["hazardous"] else row["outcome"] not in ("success", "aborted")
-        )
+        kept = ("aborted", "safe_stop") if row["hazardous"] else ("success", "aborted", "safe_stop")
+        failed = row["outcome"] not in kept
         if not failed:
             continue
         j = row["index"]
         truth, key = ev.boxes.dist(j), jax.random.wrap_key_data(ev.boxes.keys[j])
-        trace = batch.replay_episode(cfg, truth, key, ev.actions[j], ctrl=ctrl).trace
+        faults = faults_from_settings(ev.summary)
+        trace = batch.replay_episode(cfg, truth, key, ev.actions[j], ctrl=ctrl, faults=faults).trace
         os.makedirs(os.path.join(out_dir, "failures"), exist_ok=True)
         path = os.path.join(out_dir, "failures", f"box_{j}.gif")
         kw = {} if max_frames is None else {"max_frames": max_frames}
@@ -379,6 +405,8 @@ def controller_from_settings(st: dict) -> ControllerConfig:
         c["sampling"] = SamplingOptions(**c["sampling"])
     if isinstance(c.get("pose_filter"), dict):
         c["pose_filter"] = FilterConfig(**c["pose_filter"])
+    # evaluations written before the runtime safety monitor ran without one
+    c["monitor"] = MonitorConfig(**c["monitor"]) if isinstance(c.get("monitor"), dict) else monitor.OFF
     pp = c.get("prior_params")
     if isinstance(pp, list | tuple):  # a mixture of priors
         c["prior_params"] = tuple(prior.PriorParams(**p) for p in pp)
@@ -389,6 +417,11 @@ def controller_from_settings(st: dict) -> ControllerConfig:
     if unknown:
         raise EvaluationFileError(f"evaluation was run with controller options this boxjax lacks: {unknown}")
     return ControllerConfig(**c)
+
+
+def faults_from_settings(st: dict) -> Faults:
+    """The faults an evaluation ran with (none for files written before faults existed)."""
+    return Faults.from_dict(st["faults"]) if st.get("faults") else NO_FAULTS
 
 
 def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
@@ -407,6 +440,10 @@ def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
     ctrl = controller_from_settings(summary)
     truth, key = boxes.dist(index), jax.random.wrap_key_data(boxes.keys[index])
     actions = load_actions(out_dir)
+    faults = faults_from_settings(summary)
     if actions is None:
-        return run_episode(cfg, truth, key, estimator=est, ctrl=ctrl), summary
-    return batch.replay_episode(cfg, truth, key, actions[index], estimator=est, ctrl=ctrl), summary
+        return run_episode(cfg, truth, key, estimator=est, ctrl=ctrl, faults=faults), summary
+    return (
+        batch.replay_episode(cfg, truth, key, actions[index], estimator=est, ctrl=ctrl, faults=faults),
+        summary,
+    )

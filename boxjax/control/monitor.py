@@ -1,0 +1,234 @@
+"""The runtime safety monitor: between the planner and the gripper, it stops a turn that is about to lose
+the box's balance.
+
+Where it sits: the planner proposes an action; before it is sent the monitor asks the model in the
+planner's slot (the physics prior, W or PETS: whatever plans) what happens if the action is sent and the
+gripper then stops (a simplex architecture's backup controller, or a predictive safety filter's backup
+trajectory). If the predicted balance error over that horizon, plus `k_sigma` standard deviations of
+the state estimate's uncertainty about the box's y, reaches the stop threshold, the action is replaced
+by the stop: a category-2 controlled stop in the industrial sense, power kept, the belts commanded to
+rest (the drives decelerate at their acceleration limit) and both carriages moved under the box's
+centre (`backup_actions`). The stop is issued while the stop itself still keeps the box balanced, which
+is what "about to" means here.
+
+A stop is a state, not an end:
+
+* While stopped the planner keeps planning; once the belts are at rest (standstill watched:
+  |measured belt speed| <= `standstill_speed`)
+  and the planner's next step and stop are predicted within `resume_below` (hysteresis: below
+  `stop_at`), the turn resumes. An episode that resumes and
+  finishes is a success.
+* The `max_stops`-th balance stop is final, as is a stop that cannot resume within `stop_timeout`
+  control steps: the gripper comes to rest, the episode ends `safe_stop` with its reason, kept apart
+  from failures (`REASONS`).
+* An observation older than `stale_steps` control steps (the sensor dropped frames) stops the belts too,
+  reason `stale_observation`, as robot stacks do with a command timeout; it resumes when fresh frames
+  come back (within `stop_timeout` steps) and does not count toward `max_stops`.
+
+The monitor checks from the state at which the action will apply: the controller's estimate, predicted
+over the loop's delays (sensor and action latency) by `planning.compensate`.
+
+The check is one jitted, vmappable computation (`predicted_errors`: two rollouts of `horizon` steps); the
+state machine around it is host-side Python (`Monitor`, one per episode), the same in `run_episode` and
+the batched `run_episodes`. Its measured cost per control step is in benchmarks/planner.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import geometry
+from boxjax.config import Config, ConfigError
+
+# Why a stop was issued; an episode that ends stopped is `safe_stop` with one of these.
+BALANCE, STALE = "balance", "stale_observation"
+REASONS = (BALANCE, STALE)
+RUN, STOP = "run", "stop"
+
+
+@dataclasses.dataclass(frozen=True)
+class MonitorConfig:
+    """Settings of the runtime safety monitor (balance distances as fractions of the balance limit)."""
+
+    enabled: bool = True
+    stop_at: float = 0.75  # predicted balance error (+ k_sigma std) that issues a stop (3 of 4 cm)
+    resume_below: float = 0.5  # estimated balance error (+ k_sigma std) under which a stop may resume
+    horizon: int = 10  # control steps predicted: the action, then the stop (0.247 m/s to rest: 8 steps)
+    k_sigma: float = 2.0  # standard deviations of the estimate's y uncertainty added to the error
+    max_stops: int = 3  # the max_stops-th balance stop is final
+    stop_timeout: int = 60  # control steps a stop may last without resuming before it is final
+    stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
+    standstill_speed: float = 0.01  # m/s, |belt speed| under which the belts count as at rest
+
+    def __post_init__(self):
+        def bad(name, why):
+            raise ConfigError(f"monitor: {name}={getattr(self, name)!r} {why}")
+
+        if not isinstance(self.enabled, bool):
+            bad("enabled", "must be true or false")
+        if not 0 < self.stop_at <= 1:
+            bad("stop_at", "must be a fraction of the balance limit in (0, 1]")
+        if not 0 < self.resume_below < self.stop_at:
+            bad("resume_below", "must be a fraction of the balance limit in (0, stop_at)")
+        if not (isinstance(self.horizon, int) and 1 <= self.horizon <= 40):
+            bad("horizon", "must be a whole number of control steps in [1, 40]")
+        if not (math.isfinite(self.k_sigma) and self.k_sigma >= 0):
+            bad("k_sigma", "must be a number >= 0")
+        for name in ("max_stops", "stop_timeout", "stale_steps"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                bad(name, "must be a whole number >= 1")
+        if not self.standstill_speed > 0:
+            bad("standstill_speed", "must be a positive speed (m/s)")
+
+
+OFF = MonitorConfig(enabled=False)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The check (pure jnp, one box; vmap for batches).
+
+
+def backup_actions(cfg: Config, s, n: int) -> jax.Array:
+    """(n, 4) the controlled stop from the planar state s (5,): belt speeds 0 (the drives decelerate at
+    their limit) and both carriages moved together toward the box's centre, at most `max_position_step`
+    per step and within their ranges, so that the midpoint between the belts comes under the box."""
+    g = cfg.gripper
+    offset = s[geometry.Y] - 0.5 * (s[geometry.P1] + s[geometry.P2])
+    reach = g.max_position_step * jnp.arange(1, n + 1)
+    moved = jnp.clip(offset, -reach, reach)  # (n,) cumulative move of the midpoint
+
+    def carriage(p, lo, hi):
+        c = jnp.clip(p + moved, lo, hi) - p
+        return jnp.diff(c, prepend=0.0)
+
+    d1 = carriage(s[geometry.P1], *g.p1_range)
+    d2 = carriage(s[geometry.P2], *g.p2_range)
+    return jnp.stack([jnp.zeros(n), jnp.zeros(n), d1, d2], axis=1).astype(jnp.float32)
+
+
+def predicted_errors(cfg: Config, model, window, belt_speed, action, horizon: int) -> jax.Array:
+    """(2,) m: the largest balance error, now (the window's newest state) and over `horizon` predicted
+    steps, of (a) `action` followed by the stop and (b) the stop at once."""
+    backup = backup_actions(cfg, window[-1], horizon)
+    go = jnp.concatenate([action[None].astype(jnp.float32), backup[:-1]])
+    rollout = jax.vmap(model.rollout_sequence, in_axes=(None, None, 0))
+    states = rollout(window, belt_speed, jnp.stack([go, backup]))
+    errors = jax.vmap(jax.vmap(geometry.balance_error))(states)  # (2, horizon)
+    errors = jnp.where(jnp.isfinite(errors), errors, jnp.inf)  # a model that diverges is not believed safe
+    return jnp.maximum(jnp.max(errors, axis=1), geometry.balance_error(window[-1]))
+
+
+def _check(cfg: Config, model, window, belt_speed, action, horizon: int):
+    return predicted_errors(cfg, model, window, belt_speed, action, horizon), backup_actions(
+        cfg, window[-1], 1
+    )[0]
+
+
+@partial(jax.jit, static_argnames=("cfg", "horizon"))
+def check(cfg: Config, model, window, belt_speed, action, horizon: int):
+    """Jitted: ((2,) `predicted_errors`, (4,) the stop's action now)."""
+    return _check(cfg, model, window, belt_speed, action, horizon)
+
+
+@partial(jax.jit, static_argnames=("cfg", "horizon"))
+def check_batch(cfg: Config, models, windows, belt_speeds, actions, horizon: int):
+    """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's)."""
+    return jax.vmap(partial(_check, cfg, horizon=horizon))(models, windows, belt_speeds, actions)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The state machine (host side, one per episode).
+
+
+class Monitor:
+    """One episode's monitor. Per MPC step: the check (`check` or `check_batch`) on the planner's action,
+    then `decide(...)` -> the action to send. `ended` when a stop became final and the gripper is at
+    rest; `record()` the episode's monitor summary."""
+
+    def __init__(self, cfg: Config, settings: MonitorConfig):
+        self.cfg, self.m = cfg, settings
+        self.limit = cfg.task.balance_limit
+        self.mode, self.reason = RUN, None
+        self.stops: list[tuple[int, str]] = []  # (control step, reason) of every stop issued
+        self.resumes: list[int] = []
+        self.balance_stops = 0
+        self.stopped_for = 0
+        self.final = False
+        self.ended = False
+        self.stopping_steps: set[int] = set()  # control steps at which a stop action was sent
+
+    def decide(self, t: int, action, errors, stop_action, sigma: float, stale: int, belt_speed) -> np.ndarray:
+        """The action to send at control step t.
+
+        Args:
+          action: the planner's (4,). errors: (2,) `predicted_errors` (go, stop). stop_action: (4,) the
+          stop's action now. sigma: the std of the estimate's y (m); stale: control steps since the last
+          fresh frame; belt_speed: (2,) the estimated belt speeds.
+        """
+        m, limit = self.m, self.limit
+        go_error = float(errors[0]) + m.k_sigma * sigma
+        if self.mode == RUN:
+            why = STALE if stale > m.stale_steps else (BALANCE if go_error >= m.stop_at * limit else None)
+            if why is not None:
+                self._stop(t, why)
+        else:
+            self.stopped_for += 1
+            at_rest = bool(np.all(np.abs(np.asarray(belt_speed)) <= m.standstill_speed))
+            if not self.final:
+                if self.reason == STALE:  # fresh frames again, and the action is safe
+                    can_go = stale <= m.stale_steps and go_error < m.stop_at * limit
+                else:  # at rest, and the turn's next step and stop predicted well inside the limit
+                    can_go = at_rest and go_error < m.resume_below * limit
+                if can_go:
+                    self.mode, self.reason = RUN, None
+                    self.resumes.append(t)
+                elif self.stopped_for >= m.stop_timeout:
+                    self.final = True
+            if self.final and at_rest and self.stopped_for >= 2:
+                self.ended = True
+        out = np.asarray(action, np.float64) if self.mode == RUN else np.asarray(stop_action, np.float64)
+        if self.mode == STOP:
+            self.stopping_steps.add(t)
+        return out
+
+    def _stop(self, t: int, why: str) -> None:
+        self.mode, self.reason, self.stopped_for = STOP, why, 0
+        self.stops.append((t, why))
+        if why == BALANCE:
+            self.balance_stops += 1
+            self.final = self.balance_stops >= self.m.max_stops
+
+    @property
+    def stopped(self) -> bool:
+        return self.mode == STOP
+
+    def record(self) -> dict:
+        """The monitor's part of an episode summary (plain data)."""
+        return {
+            "monitor_stops": len(self.stops),
+            "monitor_stop_steps": [t for t, _ in self.stops],
+            "monitor_stop_reasons": [r for _, r in self.stops],
+            "monitor_resumes": len(self.resumes),
+        }
+
+
+def crossing(balance_errors, limit: float, stopping_steps, guard_steps=()) -> tuple[bool, bool]:
+    """(crossed, unnoticed) for an episode's TRUE balance errors (T+1,) after each action (index 0 is the
+    reset): crossed when one passed `limit`; unnoticed when, at the first crossing, the action that led to
+    it was not a stop (a monitor stop or the exploration guard's re-centring, `stopping_steps` and
+    `guard_steps`: control-step indices of those actions)."""
+    over = np.flatnonzero(np.asarray(balance_errors) > limit)
+    if over.size == 0:
+        return False, False
+    t = int(over[0])
+    if t == 0:  # over the limit at the reset: nothing could have stopped it
+        return True, True
+    noticed = (t - 1) in set(stopping_steps) or (t - 1) in set(guard_steps)
+    return True, not noticed

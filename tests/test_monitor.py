@@ -1,0 +1,148 @@
+"""The runtime safety monitor (boxjax.control.monitor) and the latency compensation (planning.compensate):
+the stop it issues, its state machine, the crossing bookkeeping, and that it stops a turn the simulated
+world would lose, whatever model is in the planner's slot."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from boxjax import geometry, massdist, planning
+from boxjax.config import DEFAULT, ConfigError
+from boxjax.control import monitor
+from boxjax.control.monitor import BALANCE, STALE, Monitor, MonitorConfig
+from boxjax.prior import make_prior
+
+CFG = DEFAULT
+LIMIT = CFG.task.balance_limit
+STEP = CFG.gripper.max_position_step
+
+
+def _state(p1=-0.10, p2=0.10, x=0.0, y=0.0, yaw=0.0):
+    return jnp.asarray([p1, p2, x, y, yaw], jnp.float32)
+
+
+@pytest.mark.parametrize("y", [0.035, -0.022, 0.004, 0.0])
+def test_the_stop_rests_the_belts_and_brings_the_carriages_under_the_box(y):
+    stop = np.asarray(monitor.backup_actions(CFG, _state(y=y), 10))
+    assert stop.shape == (10, 4)
+    np.testing.assert_array_equal(stop[:, :2], 0.0)  # belts commanded to rest (the drives ramp at their limit)
+    assert np.all(np.abs(stop[:, 2:]) <= STEP + 1e-7)  # never faster than a carriage may move
+    np.testing.assert_allclose(stop[:, 2], stop[:, 3], atol=1e-6)  # both together: the gap between the belts is kept
+    np.testing.assert_allclose(stop[:, 2].sum(), y, atol=1e-6)  # the midline ends under the box's centre
+    assert np.all(np.sign(stop[:, 2]) * np.sign(y) >= 0)  # towards it, never away
+
+
+def test_the_stop_keeps_the_carriages_in_their_ranges():
+    p1_lo, p1_hi = CFG.gripper.p1_range
+    s = _state(p1=p1_hi - 0.005, p2=0.15, y=0.10)  # the box far to +y; belt 1 is 5 mm from its inner end
+    stop = np.asarray(monitor.backup_actions(CFG, s, 10))
+    p1 = float(s[geometry.P1]) + np.cumsum(stop[:, 2])
+    p2 = float(s[geometry.P2]) + np.cumsum(stop[:, 3])
+    assert p1.max() <= p1_hi + 1e-6 and p2.max() <= CFG.gripper.p2_range[1] + 1e-6
+    assert stop[:, 3].sum() > stop[:, 2].sum()  # the free carriage keeps moving the midline
+
+
+def _decide(m: Monitor, t: int, go: float, *, sigma=0.0, stale=0, belt=(0.2, -0.2)):
+    planned = np.array([0.2, -0.2, 0.0, 0.0])
+    stop = np.array([0.0, 0.0, 0.01, 0.01])
+    out = m.decide(t, planned, np.array([go, go]), stop, sigma, stale, np.asarray(belt))
+    return "go" if np.array_equal(out, planned) else "stop"
+
+
+def test_the_monitor_stops_before_the_threshold_and_resumes_only_at_rest_and_well_inside():
+    m = Monitor(CFG, MonitorConfig(stop_at=0.75, resume_below=0.5))
+    assert _decide(m, 0, 0.74 * LIMIT) == "go"
+    assert _decide(m, 1, 0.70 * LIMIT, sigma=0.05 * LIMIT) == "stop"  # 0.7 + 2 x 0.05 >= 0.75
+    assert m.stops == [(1, BALANCE)] and m.stopped
+    assert _decide(m, 2, 0.2 * LIMIT, belt=(0.1, -0.1)) == "stop"  # belts still running: no resume
+    assert _decide(m, 3, 0.6 * LIMIT, belt=(0.0, 0.0)) == "stop"  # at rest, but not inside resume_below
+    assert _decide(m, 4, 0.4 * LIMIT, belt=(0.0, 0.0)) == "go"  # at rest and well inside: resume
+    assert m.resumes == [4] and not m.stopped
+    assert m.stopping_steps == {1, 2, 3}
+
+
+def test_the_last_allowed_stop_is_final_and_ends_at_rest():
+    m = Monitor(CFG, MonitorConfig(max_stops=2))
+    t = 0
+    for _ in range(2):
+        assert _decide(m, t, LIMIT) == "stop"
+        t += 1
+        if not m.final:
+            assert _decide(m, t, 0.1 * LIMIT, belt=(0, 0)) == "go"
+            t += 1
+    assert m.final and not m.ended
+    assert _decide(m, t, 0.0, belt=(0.1, 0.1)) == "stop" and not m.ended  # final: no resume; not at rest
+    assert _decide(m, t + 1, 0.0, belt=(0.0, 0.0)) == "stop" and m.ended  # at rest: the episode ends
+    assert m.record()["monitor_stops"] == 2
+
+
+def test_a_stop_that_cannot_resume_times_out_into_a_final_stop():
+    m = Monitor(CFG, MonitorConfig(stop_timeout=5))
+    assert _decide(m, 0, LIMIT) == "stop"
+    for t in range(1, 7):
+        _decide(m, t, 0.9 * LIMIT, belt=(0, 0))
+    assert m.final and m.ended and m.resumes == []
+
+
+def test_stale_observations_stop_the_belts_until_fresh_frames_return():
+    m = Monitor(CFG, MonitorConfig(stale_steps=2))
+    assert _decide(m, 0, 0.0, stale=2) == "go"
+    assert _decide(m, 1, 0.0, stale=3) == "stop" and m.reason == STALE
+    assert _decide(m, 2, 0.0, stale=4, belt=(0.1, 0.1)) == "stop"
+    assert _decide(m, 3, 0.0, stale=0, belt=(0.1, 0.1)) == "go"  # fresh again: it need not wait for rest
+    assert m.balance_stops == 0  # stale stops do not count toward max_stops
+
+
+def test_monitor_settings_are_validated_by_name():
+    for kwargs, name in (
+        ({"stop_at": 1.5}, "stop_at"),
+        ({"resume_below": 0.9}, "resume_below"),
+        ({"horizon": 0}, "horizon"),
+        ({"k_sigma": -1.0}, "k_sigma"),
+        ({"max_stops": 0}, "max_stops"),
+    ):
+        with pytest.raises(ConfigError, match=name):
+            MonitorConfig(**kwargs)
+
+
+def test_crossings_are_noticed_only_when_a_stop_was_under_way():
+    errors = np.array([0.0, 0.01, 0.03, 0.045, 0.05])  # crosses at index 3, after action 2
+    assert monitor.crossing(errors, LIMIT, set()) == (True, True)
+    assert monitor.crossing(errors, LIMIT, {2}) == (True, False)
+    assert monitor.crossing(errors, LIMIT, {0}) == (True, True)  # an earlier stop that resumed: unnoticed
+    assert monitor.crossing(errors, LIMIT, set(), guard_steps=[2]) == (True, False)
+    assert monitor.crossing(errors[:3], LIMIT, set()) == (False, False)
+
+
+def test_the_check_predicts_with_the_model_in_the_slot():
+    prior = make_prior(massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box))
+    window = planning.initial_window(_state(y=0.02))
+    belt = jnp.zeros(2)
+    rest = jnp.zeros(4)
+    errors, stop = monitor.check(CFG, prior, window, belt, rest, 10)
+    assert errors.shape == (2,) and np.all(np.asarray(errors) >= 0.02 - 1e-6)  # includes the present error
+    np.testing.assert_allclose(np.asarray(stop)[2:], STEP, rtol=1e-5)  # first stop step: 1 cm towards the box
+    # a batch of boxes gives each box's own check
+    stacked = planning.stack([prior, prior])
+    errs_b, stops_b = monitor.check_batch(
+        CFG, stacked, jnp.stack([window, window]), jnp.stack([belt, belt]), jnp.stack([rest, rest]), 10
+    )
+    np.testing.assert_allclose(np.asarray(errs_b)[0], np.asarray(errors), atol=1e-6)
+
+
+def test_compensation_moves_the_window_over_the_actions_in_flight():
+    prior = make_prior(massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box))
+    window = planning.initial_window(_state())
+    belt = jnp.zeros(2)
+    same = planning.compensate(prior, window, belt, jnp.zeros((0, 4)))
+    assert same[0] is window and same[1] is belt
+    acts = jnp.asarray([[0.1, 0.1, 0.01, 0.01]] * 3, jnp.float32)
+    w, b = planning.compensate(prior, window, belt, acts)
+    np.testing.assert_allclose(np.asarray(w[-3:]), np.asarray(prior.rollout_sequence(window, belt, acts)))
+    np.testing.assert_allclose(np.asarray(w[: len(window) - 3]), np.asarray(window[3:]))
+    dv = CFG.gripper.belt_accel_limit * CFG.gripper.control_dt
+    np.testing.assert_allclose(np.asarray(b), min(0.1, 3 * dv), atol=1e-6)  # the drives ramp at their limit
+    assert w.shape == window.shape
