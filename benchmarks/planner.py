@@ -7,8 +7,11 @@ Prints ONE JSON object:
   * the sampling planner (the controller's default, `sampling_planner`): compile time and per-step
     latency at its default (64 sequences x 10 steps = 640 prior predictions + 5 gradient steps) and
     for each setting of `SAMPLING_CONFIGS` (the planner study of the README), all in one run;
+  * the runtime safety monitor (`boxjax.control.monitor`): what it adds to a control step, its jitted
+    check (two 10-step prior rollouts) plus the host-side decision, and the latency compensation
+    (`planning.compensate`, 2 steps), beside the default sampling planner's step in the same run;
   * the backend / device and the machine's load.
-Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random]
+Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random] [--monitor-only]
 """
 
 from __future__ import annotations
@@ -23,8 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import massdist, prior
+from boxjax import massdist, planning, prior
 from boxjax.config import DEFAULT
+from boxjax.control import monitor
 from boxjax.planners import paper as planner
 from boxjax.planners import sampling as sp
 from boxjax.prior import force_map as calibrate
@@ -66,6 +70,7 @@ def main() -> None:
     ap.add_argument("--variant", default="slip", choices=prior.VARIANTS)
     ap.add_argument("--rule", default="random", choices=planner.RULES)
     ap.add_argument("--horizon", type=int, default=1)
+    ap.add_argument("--monitor-only", action="store_true", help="time the monitor (and the default planner)")
     args = ap.parse_args()
     calls = max(args.calls, 200)
     cfg = DEFAULT
@@ -94,6 +99,11 @@ def main() -> None:
         "rule": args.rule,
         "horizon": args.horizon,
     }
+    if args.variant == "slip":
+        out["monitor"] = _monitor(cfg, model, window, speed, target, keys, min(calls, 300))
+    if args.monitor_only:
+        _finish(out)
+        return
     plan50 = planner.make_planner(cfg, n_samples=50, rule=args.rule, horizon=args.horizon)
     t0 = time.perf_counter()
     jax.block_until_ready(plan50(keys[0], model, window, speed, target))
@@ -128,6 +138,42 @@ def main() -> None:
                     min(calls, 100),
                 ),
             }
+    _finish(out)
+
+
+def _monitor(cfg, model, window, speed, target, keys, calls: int) -> dict:
+    """The monitor's cost per control step, and the default planner's step it is added to (same run)."""
+    opts = sp.SamplingOptions()
+    splan = sp.make_sampling_planner(cfg, opts)
+    nominal = sp.initial_nominal(cfg, opts, speed)
+    action = jnp.array([0.15, -0.15, 0.002, 0.002], jnp.float32)
+    horizon = monitor.MonitorConfig().horizon
+    in_flight = jnp.zeros((2, 4), jnp.float32)
+    compensate = jax.jit(planning.compensate)
+    res = {"horizon": horizon}
+    for name, fn, args_for in (
+        ("planner_default", splan, lambda i: (keys[i], model, window, speed, target, nominal)),
+        ("check", monitor.check, lambda i: (cfg, model, window, speed, action, horizon)),
+        ("compensate_2_steps", compensate, lambda i: (model, window, speed, in_flight)),
+    ):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args_for(0)))
+        res[name] = {"compile_s": time.perf_counter() - t0, **_latency(fn, args_for, calls)}
+
+    def step(i):  # the whole per-step cost as the episode loop pays it: check, to host, decide
+        errors, stop = monitor.check(cfg, model, window, speed, action, horizon)
+        a, e, st, b = (np.asarray(x) for x in (action, errors, stop, speed))
+        return mon.decide(i, a, e, st, 0.002, 0, b)
+
+    mon = monitor.Monitor(cfg, monitor.MonitorConfig(stop_at=1.0, resume_below=0.99))
+    res["check_and_decide"] = _latency(step, lambda i: (i,), calls)
+    res["added_fraction_of_planner_step"] = (
+        res["check_and_decide"]["median_ms"] / res["planner_default"]["median_ms"]
+    )
+    return res
+
+
+def _finish(out: dict) -> None:
     dev = jax.devices()[0]
     out["backend"] = jax.default_backend()
     out["device"] = f"{dev.platform}:{getattr(dev, 'device_kind', '')}"

@@ -193,7 +193,7 @@ def test_the_filter_tracks_a_moving_box_through_noise_and_latency():
     # its stated uncertainty: about the measurement noise reduced by the averaging, growing over a latency
     filt = make_filter(FilterConfig(compensation="model"), f, dt)
     cv = make_filter(FilterConfig(compensation="constant_velocity"), f, dt)
-    for t in range(50):
+    for _ in range(50):
         z = np.array([-0.1, 0.1, 0.0, 0.0, 0.0])
         filt.step(z), cv.step(z)
     assert 0.3e-3 < filt.y_std() < 3e-3 and cv.y_std() > filt.y_std()

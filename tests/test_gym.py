@@ -60,3 +60,31 @@ def test_render_rgb_array_is_the_top_view():
     env.step(np.array([0.1, -0.1, 0.0, 0.0], np.float32))
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+
+
+def test_faults_reach_the_agent_as_a_robot_would_see_them_and_replay():
+    from boxjax.sim.faults import Faults
+
+    faults = Faults(obs_noise_mm=3.0, obs_noise_deg=1.5, obs_latency=2, drop_rate=0.2, action_latency=1)
+    env = BoxTurnEnv(DEFAULT, box="A", faults=faults)
+    clean = BoxTurnEnv(DEFAULT, box="A")
+    a = np.array([0.15, -0.15, 0.0, 0.0], np.float32)
+    runs = []
+    for _ in range(2):
+        obs, info = env.reset(seed=3)
+        rows = [obs]
+        for _ in range(12):
+            obs, _, _, _, info = env.step(a)
+            rows.append(obs)
+        runs.append(np.stack(rows))
+    np.testing.assert_array_equal(runs[0], runs[1])  # drawn from the reset seed: it replays
+    obs0, _ = clean.reset(seed=3)
+    assert not np.allclose(runs[0][0][2:5], obs0[2:5], atol=1e-4)  # the pose is noisy
+    assert info["obs_age"] >= 2  # late by the latency (or more after a drop)
+    # the late action: the first step applies the initial rest, so the belts have not started
+    env.reset(seed=3)
+    _, _, _, _, info = env.step(a)
+    assert abs(env._state.belt_speed[0]) < 1e-3
+    from gymnasium.utils.env_checker import check_env
+
+    check_env(BoxTurnEnv(DEFAULT, box="A", faults=faults), skip_render_check=True)

@@ -4,7 +4,6 @@ world would lose, whatever model is in the planner's slot."""
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -28,9 +27,9 @@ def _state(p1=-0.10, p2=0.10, x=0.0, y=0.0, yaw=0.0):
 def test_the_stop_rests_the_belts_and_brings_the_carriages_under_the_box(y):
     stop = np.asarray(monitor.backup_actions(CFG, _state(y=y), 10))
     assert stop.shape == (10, 4)
-    np.testing.assert_array_equal(stop[:, :2], 0.0)  # belts commanded to rest (the drives ramp at their limit)
+    np.testing.assert_array_equal(stop[:, :2], 0.0)  # belts to rest (the drives ramp at their limit)
     assert np.all(np.abs(stop[:, 2:]) <= STEP + 1e-7)  # never faster than a carriage may move
-    np.testing.assert_allclose(stop[:, 2], stop[:, 3], atol=1e-6)  # both together: the gap between the belts is kept
+    np.testing.assert_allclose(stop[:, 2], stop[:, 3], atol=1e-6)  # together: the belts' gap is kept
     np.testing.assert_allclose(stop[:, 2].sum(), y, atol=1e-6)  # the midline ends under the box's centre
     assert np.all(np.sign(stop[:, 2]) * np.sign(y) >= 0)  # towards it, never away
 

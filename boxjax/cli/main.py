@@ -15,6 +15,8 @@
     boxjax rotate ... --model blackbox [--model-weights FILE] [--adapt-every 20] [--adapt-epochs 1]
     boxjax compare [--seeds 5] [--boxes A B C D] [--methods prior blackbox] [--out DIR]
     boxjax reproduce --out DIR [--quick] [--retrain] [--force] [--json]        (the paper's tables, figures)
+    boxjax fault-table [--boxes 100] [--seed 0] [--rows ...] [--out FILE.json] [--plot FILE.png]
+    boxjax rotate|evaluate ... [--obs-noise-mm 3] [--obs-latency 2] [--friction 0.4] [--monitor on|off]
 
 Every command but `reproduce` (the shipped weights are the default gripper's) takes --config FILE.toml
 (box, gripper and task parameters). With --json the last line printed is one JSON object (the summary);
@@ -34,6 +36,7 @@ import sys
 from boxjax.cli import args as cli_args
 from boxjax.cli import box as cli_box
 from boxjax.cli import episodes as cli_episodes
+from boxjax.cli import faults as cli_faults
 from boxjax.cli import reproduce as cli_reproduce
 from boxjax.cli import train as cli_train
 from boxjax.cli.args import emit
@@ -50,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     cli_box.add_parsers(sub)
     cli_train.add_parsers(sub)
     cli_reproduce.add_parsers(sub)
+    cli_faults.add_parsers(sub)
     return p
 
 

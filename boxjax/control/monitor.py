@@ -57,6 +57,10 @@ class MonitorConfig:
     """Settings of the runtime safety monitor (balance distances as fractions of the balance limit)."""
 
     enabled: bool = True
+    # Watch only: check every action and record the stops it would issue (`Monitor.log`,
+    # `monitor_would_stop` in the summary), but send the planner's actions unchanged (how a monitor is
+    # first run beside a robot, and how its thresholds are measured: docs/results/faults.md).
+    shadow: bool = False
     stop_at: float = 0.75  # predicted balance error (+ k_sigma std) that issues a stop (3 of 4 cm)
     resume_below: float = 0.5  # estimated balance error (+ k_sigma std) under which a stop may resume
     horizon: int = 10  # control steps predicted: the action, then the stop (0.247 m/s to rest: 8 steps)
@@ -163,6 +167,8 @@ class Monitor:
         self.final = False
         self.ended = False
         self.stopping_steps: set[int] = set()  # control steps at which a stop action was sent
+        self.log: list[tuple[int, float, float, float]] = []  # (t, go error, stop error, sigma) per check
+        self.would_stop: list[int] = []  # shadow mode: the steps at which it would have stopped
 
     def decide(self, t: int, action, errors, stop_action, sigma: float, stale: int, belt_speed) -> np.ndarray:
         """The action to send at control step t.
@@ -174,6 +180,11 @@ class Monitor:
         """
         m, limit = self.m, self.limit
         go_error = float(errors[0]) + m.k_sigma * sigma
+        self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))
+        if m.shadow:
+            if stale > m.stale_steps or go_error >= m.stop_at * limit:
+                self.would_stop.append(t)
+            return np.asarray(action, np.float64)
         if self.mode == RUN:
             why = STALE if stale > m.stale_steps else (BALANCE if go_error >= m.stop_at * limit else None)
             if why is not None:
@@ -216,6 +227,7 @@ class Monitor:
             "monitor_stop_steps": [t for t, _ in self.stops],
             "monitor_stop_reasons": [r for _, r in self.stops],
             "monitor_resumes": len(self.resumes),
+            **({"monitor_would_stop": self.would_stop} if self.m.shadow else {}),
         }
 
 

@@ -27,6 +27,12 @@ info: balance_error_m, max_balance_error_m, yaw_error_rad, outcome ("running", "
 reason, `task.REASONS`), clipped (the action was beyond a limit), step, hazardous (of the box, for
 analysis only).
 
+Faults (`faults=boxjax.sim.faults.Faults(...)`, default none): the agent then observes the pose as a
+robot's camera gives it (noise, latency, dropped frames: `info["obs_age"]`, `info["obs_fresh"]`), its
+actions apply late (`action_latency`), the belts' friction and servo gains differ from the config's, and
+the box's mass may shift; reward and outcome follow the true world. Drawn from the reset's seed, so an
+episode replays.
+
 Boxes: `box="safe"` (default) draws a random label-safe mixture box per episode from the reset seed
 (`massdist.sample`, hazardous draws rejected); "any" keeps hazardous ones; a name ("A".."D", "uniform"), a
 box file path (`boxfile`) or a `MassDistribution` fixes the box. `reset(options={"box": ...})` overrides it
@@ -44,6 +50,7 @@ from gymnasium import spaces
 
 from boxjax import boxfile, massdist, task
 from boxjax.config import DEFAULT, HARDWARE, Config
+from boxjax.sim import faults as F
 from boxjax.sim.episode import EpisodeTrace
 from boxjax.sim.native import NativeEnv
 from boxjax.viz.animate import frame_rgb
@@ -71,12 +78,19 @@ class BoxTurnEnv(gymnasium.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
-    def __init__(self, cfg: Config = DEFAULT, box="safe", render_mode: str | None = None):
+    def __init__(
+        self, cfg: Config = DEFAULT, box="safe", render_mode: str | None = None, faults: F.Faults = F.NONE
+    ):
 
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.cfg = cfg
         self.render_mode = render_mode
+        if not isinstance(faults, F.Faults):
+            faults = F.Faults.from_dict(dict(faults))
+        self.faults = faults
+        self._sensor = self._actuator = self._shift = None
+        self._seen = None  # (s, belt_speed, age, fresh) the agent observes
         self._box = _box_source(box, cfg)
         self._sim = NativeEnv(cfg)
         g, hw = cfg.gripper, HARDWARE
@@ -101,10 +115,16 @@ class BoxTurnEnv(gymnasium.Env):
             if self._box == "any" or not bool(massdist.is_hazardous(d, self.cfg.box)):
                 return d
 
-    def _obs(self) -> np.ndarray:
+    def _look(self) -> None:
         st = self._state
-        s = np.asarray(st.s, np.float64)
-        obs = np.concatenate([s, np.asarray(st.belt_speed, np.float64), [float(st.target_yaw) - s[4]]])
+        if self._sensor is None:
+            self._seen = (np.asarray(st.s, np.float64), np.asarray(st.belt_speed, np.float64), 0, True)
+        else:
+            self._seen = self._sensor.observe(st.s, st.belt_speed)
+
+    def _obs(self) -> np.ndarray:
+        s, belt, _, _ = self._seen
+        obs = np.concatenate([s, belt, [float(self._state.target_yaw) - s[4]]])
         return np.clip(obs, self.observation_space.low, self.observation_space.high).astype(np.float32)
 
     def _info(self) -> dict:
@@ -117,6 +137,8 @@ class BoxTurnEnv(gymnasium.Env):
             "clipped": bool(st.clipped),
             "step": int(st.t),
             "hazardous": bool(massdist.is_hazardous(self._dist, self.cfg.box)),
+            "obs_age": int(self._seen[2]),  # control steps since the observed frame was taken
+            "obs_fresh": bool(self._seen[3]),  # False: a dropped frame, the last one held
         }
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -127,6 +149,14 @@ class BoxTurnEnv(gymnasium.Env):
             self._dist = self._draw_box()
         key = jax.random.PRNGKey(int(self.np_random.integers(2**31 - 1)))  # initial-pose noise, if any
         self._state = self._sim.reset(key, self._dist)
+        if self.faults.any:  # this episode's faults, drawn from its key
+            gen = F.rng(key)
+            self._shift = F.mass_shift(self._dist, self.cfg, self.faults, gen)
+            self._sensor = F.Sensor(self.faults, gen) if self.faults.observation else None
+            self._actuator = F.Actuator(self.faults) if self.faults.action_latency else None
+            if self.faults.plant:
+                F.world_model(self._state.model, self.faults)
+        self._look()
         self._trace = [self._state]
         return self._obs(), self._info()
 
@@ -139,7 +169,12 @@ class BoxTurnEnv(gymnasium.Env):
         if a.shape != (4,):
             raise ValueError(f"action must have shape (4,) = (v1, v2, dp1, dp2), got {np.shape(action)}")
         before = abs(float(self._state.s[4]) - float(self._state.target_yaw))
+        if self._shift is not None and not self._shift.done and int(self._state.t) >= self._shift.step:
+            self._shift.apply(self._state.model, self._sim.ids.box_body)
+        if self._actuator is not None:
+            a = self._actuator.send(a)
         self._state = self._sim.step(self._state, a)
+        self._look()
         self._trace.append(self._state)
         st = self._state
         after = abs(float(st.s[4]) - float(st.target_yaw))

@@ -312,3 +312,58 @@ def plot_evaluation(ev, path, cfg=DEFAULT, title: str | None = None) -> str:
     if title:
         fig.suptitle(title, fontsize=11)
     return save_figure(fig, path)
+
+
+def plot_fault_table(table: dict, path) -> str:
+    """The fault table (`experiments.fault_table`) as one panel per fault: the safe boxes turned (95 %
+    interval) with the monitor on and off against the fault's level (the no-fault row at the model's own
+    level), the monitor's safe stops, and the crossings of the balance limit (unnoticed ones filled)."""
+    rows = table["rows"]
+    none = rows.get("none")
+    groups: dict[str, list] = {}
+    for name, e in rows.items():
+        if e["group"] in ("none",):
+            continue
+        groups.setdefault(e["group"], []).append((e["level"], name, e))
+    origin = {"belt friction (model: 0.5)": 0.5, "one belt's friction (model: 0.5)": 0.5}
+    n = max(1, len(groups))
+    cols = min(4, n)
+    fig = _figure((4.0 * cols, 3.4 * (-(-n // cols))))
+    axes = np.atleast_1d(fig.subplots(-(-n // cols), cols, squeeze=False)).ravel()
+    for ax, (group, pts) in zip(axes, groups.items(), strict=False):
+        if none is not None and group != "realistic":
+            pts = [(origin.get(group, 0.0), "none", none), *pts]
+        pts.sort(key=lambda p: p[0])
+        x = np.array([p[0] for p in pts])
+        for m, colour, mark in (("on", "tab:blue", "o"), ("off", "tab:grey", "s")):
+            have = [(xi, p[2][m]) for xi, p in zip(x, pts, strict=True) if m in p[2]]
+            if not have:
+                continue
+            xs = np.array([h[0] for h in have])
+            rate = np.array([100 * h[1]["safe_success_rate"] for h in have])
+            lo = np.array([100 * h[1]["safe_success_ci95"][0] for h in have])
+            hi = np.array([100 * h[1]["safe_success_ci95"][1] for h in have])
+            ax.errorbar(xs, rate, yerr=[rate - lo, hi - rate], color=colour, marker=mark, capsize=3,
+                        label=f"turned, monitor {m}")  # fmt: skip
+            cross = np.array([h[1]["crossings"] for h in have])
+            unnoticed = np.array([h[1]["unnoticed_crossings"] for h in have])
+            ax.bar(xs + (0.02 if m == "on" else -0.02) * max(1, np.ptp(xs)), cross,
+                   width=0.04 * max(1, np.ptp(xs)), color="none", edgecolor="tab:red")  # fmt: skip
+            ax.bar(xs + (0.02 if m == "on" else -0.02) * max(1, np.ptp(xs)), unnoticed,
+                   width=0.04 * max(1, np.ptp(xs)), color="tab:red", alpha=0.8)  # fmt: skip
+            if m == "on":
+                stops = np.array([h[1]["safe_stops"] for h in have])
+                ax.plot(xs, stops, color="tab:orange", marker="v", label="safe stops (monitor on)")
+        ax.set_title(group, fontsize=10)
+        ax.set_ylim(0, 102)
+        ax.set_ylabel("% of safe boxes / count")
+        ax.grid(alpha=0.3)
+    for ax in axes[len(groups) :]:
+        ax.axis("off")
+    axes[0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(
+        f"{table['boxes']} random safe boxes per row (seed {table['seed']}, {table['estimator']}); red: "
+        "crossings of the 4 cm limit (filled: unnoticed)",
+        fontsize=10,
+    )
+    return save_figure(fig, path)
