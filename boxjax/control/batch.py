@@ -380,7 +380,7 @@ def run_episodes(
             plan_b = put(_set_slot(plan_b, k, first_plan))
             keys_b = put(keys_b.at[k].set(key_plan[b]))
             if ctrl.monitor.enabled:
-                rec[b].monitor = Monitor(cfg, ctrl.monitor)
+                rec[b].monitor = Monitor(cfg, ctrl.monitor, delay)
 
         for k in range(width):
             if queue:

@@ -258,7 +258,7 @@ def run_episode(
         plan_state = mpc.init(observe(state))
         if ctrl.observer_gain > 0:
             model = planning.DriftCorrected(model, jnp.zeros(3, jnp.float32))
-        mon = Monitor(cfg, ctrl.monitor) if ctrl.monitor.enabled else None
+        mon = Monitor(cfg, ctrl.monitor, world.delay) if ctrl.monitor.enabled else None
         mpc_steps = 0
         while not bool(state.done) and len(actions) < max_steps and not (mon is not None and mon.ended):
             if adapter is not None and mpc_steps > 0 and mpc_steps % ctrl.adapt_every == 0:

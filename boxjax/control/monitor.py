@@ -61,11 +61,15 @@ class MonitorConfig:
     # `monitor_would_stop` in the summary), but send the planner's actions unchanged (how a monitor is
     # first run beside a robot, and how its thresholds are measured: docs/results/faults.md).
     shadow: bool = False
-    stop_at: float = 0.75  # predicted balance error (+ k_sigma std) that issues a stop (3 of 4 cm)
-    resume_below: float = 0.5  # estimated balance error (+ k_sigma std) under which a stop may resume
+    stop_at: float = 0.8  # predicted balance error (+ k_sigma std) that issues a stop (3.2 of 4 cm)
+    resume_below: float = 0.65  # predicted balance error (+ k_sigma std) under which a stop may resume
     horizon: int = 10  # control steps predicted: the action, then the stop (0.247 m/s to rest: 8 steps)
     k_sigma: float = 2.0  # standard deviations of the estimate's y uncertainty added to the error
-    max_stops: int = 3  # the max_stops-th balance stop is final
+    # The error of the model's prediction over the loop's delays (`planning.compensate`), m per square
+    # root of a control step: 1.65 / 2.48 / 3.68 mm rms of balance error at 1 / 2 / 4 steps with the prior
+    # on the true box (scripts/monitor_study.py, docs/results/faults.md).
+    delay_std: float = 0.0018
+    max_stops: int = 20  # the max_stops-th balance stop is final
     stop_timeout: int = 60  # control steps a stop may last without resuming before it is final
     stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
     standstill_speed: float = 0.01  # m/s, |belt speed| under which the belts count as at rest
@@ -82,8 +86,9 @@ class MonitorConfig:
             bad("resume_below", "must be a fraction of the balance limit in (0, stop_at)")
         if not (isinstance(self.horizon, int) and 1 <= self.horizon <= 40):
             bad("horizon", "must be a whole number of control steps in [1, 40]")
-        if not (math.isfinite(self.k_sigma) and self.k_sigma >= 0):
-            bad("k_sigma", "must be a number >= 0")
+        for name in ("k_sigma", "delay_std"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
+                bad(name, "must be a number >= 0")
         for name in ("max_stops", "stop_timeout", "stale_steps"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
@@ -156,8 +161,10 @@ class Monitor:
     then `decide(...)` -> the action to send. `ended` when a stop became final and the gripper is at
     rest; `record()` the episode's monitor summary."""
 
-    def __init__(self, cfg: Config, settings: MonitorConfig):
+    def __init__(self, cfg: Config, settings: MonitorConfig, delay: int = 0):
+        """`delay`: the control steps the controller predicts its estimate over (`World.delay`)."""
         self.cfg, self.m = cfg, settings
+        self.delay_var = delay * settings.delay_std**2
         self.limit = cfg.task.balance_limit
         self.mode, self.reason = RUN, None
         self.stops: list[tuple[int, str]] = []  # (control step, reason) of every stop issued
@@ -175,10 +182,12 @@ class Monitor:
 
         Args:
           action: the planner's (4,). errors: (2,) `predicted_errors` (go, stop). stop_action: (4,) the
-          stop's action now. sigma: the std of the estimate's y (m); stale: control steps since the last
+          stop's action now. sigma: the std of the estimate's y at its measurement (m; the prediction's
+          over the delay is added, `delay_std`); stale: control steps since the last
           fresh frame; belt_speed: (2,) the estimated belt speeds.
         """
         m, limit = self.m, self.limit
+        sigma = math.sqrt(sigma**2 + self.delay_var)  # the estimate's, and the prediction's over the delay
         go_error = float(errors[0]) + m.k_sigma * sigma
         self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))
         if m.shadow:
