@@ -41,6 +41,7 @@ ROWS = {
 }
 STOP_AT = (0.6, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 K_SIGMA = (0.0, 1.0, 2.0)
+DELAY_STD = (0.0, 0.0018)  # m per sqrt(step): the prediction's error over the delay (MonitorConfig.delay_std)
 
 
 def run_row(faults: Faults, n: int, seed: int) -> list[dict]:
@@ -70,7 +71,9 @@ def run_row(faults: Faults, n: int, seed: int) -> list[dict]:
     ]
 
 
-def analyse(episodes: list[dict], stop_at: float, k: float, window: int = 10) -> dict:
+def analyse(
+    episodes: list[dict], stop_at: float, k: float, delay_std: float = 0.0, delay: int = 0, window: int = 10
+) -> dict:
     """The alarms a setting would raise, against each episode's true balance trace: a crossing is noticed
     when an alarm came within `window` steps before the action that led to it (the stop's horizon; an
     older alarm would have been followed by a resume); `lead` is how long before. In episodes turned
@@ -78,30 +81,34 @@ def analyse(episodes: list[dict], stop_at: float, k: float, window: int = 10) ->
     limit = CFG.task.balance_limit
     leads, unnoticed, onsets, needless, turned = [], 0, 0, 0, 0
     for ep in episodes:
-        alarm = {t: go + k * sig >= stop_at * limit for t, go, _, sig in ep["log"]}
+        alarm = {
+            t: go + k * np.sqrt(sig**2 + delay * delay_std**2) >= stop_at * limit
+            for t, go, _, sig in ep["log"]
+        }
         over = np.flatnonzero(np.asarray(ep["balance"]) > limit)
         if over.size:
             t_cross = int(over[0]) - 1  # the action that led to it
             near = [t for t in range(t_cross - window, t_cross + 1) if alarm.get(t)]
             if near:
-                leads.append(t_cross - near[0])
+                leads.append(int(t_cross - near[0]))
             else:
                 unnoticed += 1
         elif ep["outcome"] == "success":
             turned += 1
             steps = sorted(alarm)
-            n = sum(alarm[t] and not alarm.get(t - 1, False) for t in steps)
+            n = int(sum(alarm[t] and not alarm.get(t - 1, False) for t in steps))
             onsets += n
             needless += n > 0
     return {
         "stop_at": stop_at,
         "k_sigma": k,
-        "crossings": len(leads) + unnoticed,
+        "delay_std": delay_std,
+        "crossings": int(len(leads) + unnoticed),
         "unnoticed": unnoticed,
         "lead_steps_min": min(leads) if leads else None,
         "lead_steps_median": float(np.median(leads)) if leads else None,
         "turned": turned,
-        "turned_with_needless_stops": needless,
+        "turned_with_needless_stops": int(needless),
         "needless_stops_per_turned": onsets / turned if turned else None,
     }
 
@@ -113,17 +120,23 @@ def main() -> None:
     p.add_argument("--rows", nargs="*", default=list(ROWS), choices=list(ROWS))
     p.add_argument("--out", default="benchmarks/results_monitor_study.json")
     p.add_argument("--raw", help="also write every episode's log and balance trace here (JSON)")
+    p.add_argument("--from-raw", help="analyse the episodes of an earlier --raw file instead of running them")
     args = p.parse_args()
     batch.use_host_devices()
     out = {"boxes": args.boxes, "seed": args.seed, "rows": {}}
     raw = {}
+    earlier = None
+    if args.from_raw:
+        with open(args.from_raw) as f:
+            earlier = json.load(f)
     for name in args.rows:
         t0 = time.perf_counter()
-        eps = run_row(ROWS[name], args.boxes, args.seed)
-        table = [analyse(eps, a, k) for k in K_SIGMA for a in STOP_AT]
+        eps = earlier[name] if earlier is not None else run_row(ROWS[name], args.boxes, args.seed)
+        delay = ROWS[name].obs_latency + ROWS[name].action_latency  # what the controller predicts over
+        table = [analyse(eps, a, k, ds, delay) for ds in DELAY_STD for k in K_SIGMA for a in STOP_AT]
         wall = time.perf_counter() - t0
         raw[name] = eps
-        if args.raw:
+        if args.raw and earlier is None:
             with atomic_path(args.raw, suffix=".json") as tmp:
                 with open(tmp, "w") as f:
                     json.dump(raw, f)

@@ -4,6 +4,7 @@ world would lose, whatever model is in the planner's slot."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -145,3 +146,24 @@ def test_compensation_moves_the_window_over_the_actions_in_flight():
     dv = CFG.gripper.belt_accel_limit * CFG.gripper.control_dt
     np.testing.assert_allclose(np.asarray(b), min(0.1, 3 * dv), atol=1e-6)  # the drives ramp at their limit
     assert w.shape == window.shape
+
+
+def test_a_box_the_controller_loses_is_never_lost_unnoticed_with_the_monitor():
+    """Adversarial: development box 56 (`scripts/monitor_study.py`'s set, never the fault table's) crosses
+    the 4 cm limit without the monitor, with no fault and with 4 steps of latency. With the monitor the
+    crossing is noticed (a stop under way) or prevented (a safe stop)."""
+    from boxjax.control.config import ControllerConfig
+    from boxjax.control.episode import run_episode
+    from boxjax.experiments.evaluation import sample_safe
+    from boxjax.sim.faults import Faults
+
+    box = sample_safe(jax.random.PRNGKey(1000), 57, CFG)[56]
+    key = jax.random.fold_in(jax.random.PRNGKey(1001), 56)
+    for faults in (Faults(), Faults(obs_latency=4)):
+        off = run_episode(
+            CFG, box, key, ctrl=ControllerConfig(monitor=monitor.OFF), faults=faults, max_steps=90
+        )
+        assert off.summary["crossing"] and off.summary["unnoticed_crossing"], faults
+        on = run_episode(CFG, box, key, ctrl=ControllerConfig(), faults=faults, max_steps=150).summary
+        assert not on["unnoticed_crossing"] and on["monitor_stops"] >= 1, faults
+        assert on["safe_stop"] or on["success"] or on["crossing"]

@@ -318,3 +318,30 @@ def test_any_incoming_values_give_a_checked_state_or_a_value_error(vals):
         return
     assert np.all(np.isfinite(s)) and np.all(np.isfinite(v)) and math.isfinite(st_)
     assert s[0] < 0 < s[1]
+
+
+def test_the_planner_step_runs_the_runtime_safety_monitor_with_its_model():
+    from typing import NamedTuple
+
+    import jax.numpy as jnp
+
+    from boxjax import planning
+    from boxjax.control.monitor import MonitorConfig
+    from boxjax.robot import PlannerStep
+
+    class Drifting(NamedTuple):  # a model (a pytree) predicting the box sliding 1 cm per step sideways
+        def rollout_sequence(self, window, belt_speed, actions):
+            k = jnp.arange(1, actions.shape[0] + 1, dtype=jnp.float32)[:, None]
+            return window[-1] + k * jnp.array([0.0, 0.0, 0.0, 0.01, 0.0])
+
+        def stability_margin(self, s):
+            return jnp.float32(1.0)
+
+    turn = np.array([0.2, -0.2, 0.0, 0.0])
+    planner = planning.Planner("fixed", lambda obs: None, lambda key, model, obs, st: (turn, st, None))
+    obs = planning.observation(np.tile([-0.1, 0.1, 0.0, 0.0, 0.0], (3, 1)), np.zeros(2), 1.57)
+    on = PlannerStep(planner, Drifting(), jax.random.PRNGKey(0))
+    a = on(obs)
+    assert on.stopped and np.array_equal(a[:2], [0.0, 0.0])  # the stop, not the turn
+    off = PlannerStep(planner, Drifting(), jax.random.PRNGKey(0), monitor=MonitorConfig(enabled=False))
+    assert np.array_equal(off(obs), turn) and not off.stopped

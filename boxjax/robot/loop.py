@@ -30,7 +30,9 @@ import jax
 import numpy as np
 
 from boxjax import planning
-from boxjax.config import TaskConfig
+from boxjax.config import DEFAULT, Config, TaskConfig
+from boxjax.control.monitor import Monitor, MonitorConfig
+from boxjax.control.monitor import check as monitor_check
 from boxjax.robot.adapter import (
     STOP_REASONS,
     AdapterConfig,
@@ -50,18 +52,52 @@ PlanStep = Callable[[planning.Observation], Any]  # observation -> action (4,) (
 class PlannerStep:
     """A boxjax `planning.Planner` and its model as a plan step `obs -> action (4,)`: it keeps the
     planner's own state (`init` on the first call, then `optimize`'s plan_state) and splits `key` once
-    per call, as `control.episode.run_episode` does."""
+    per call, as `control.episode.run_episode` does; and, as there, the runtime safety monitor
+    (`boxjax.control.monitor`; on by default, `monitor=MonitorConfig(enabled=False)` removes it) checks
+    each action with the same model and replaces it by the controlled stop when the turn is about to
+    lose the box. `sigma` (m): the standard deviation of the pose estimate's y the monitor assumes (the
+    robot's vision pipeline's; the loop's staleness stops are the adapter's). `stopped` and
+    `monitor.record()` say what it did."""
 
-    def __init__(self, planner: planning.Planner, model, key):
+    def __init__(
+        self,
+        planner: planning.Planner,
+        model,
+        key,
+        *,
+        cfg: Config = DEFAULT,
+        monitor: MonitorConfig = MonitorConfig(),  # noqa: B008 (frozen)
+        sigma: float = 0.0,
+    ):
         self.planner, self.model, self.key = planner, model, key
         self.plan_state = None
+        self.cfg, self.sigma, self.t = cfg, float(sigma), 0
+        self.monitor = Monitor(cfg, monitor) if monitor.enabled else None
+
+    @property
+    def stopped(self) -> bool:
+        return self.monitor is not None and self.monitor.stopped
 
     def __call__(self, obs: planning.Observation) -> np.ndarray:
         if self.plan_state is None:
             self.plan_state = self.planner.init(obs)
         self.key, key = jax.random.split(self.key)
         a, self.plan_state, _ = self.planner.optimize(key, self.model, obs, self.plan_state)
-        return np.asarray(a, np.float64)
+        a = np.asarray(a, np.float64)
+        if self.monitor is not None and np.all(np.isfinite(a)):
+            errors, stop = monitor_check(
+                self.cfg,
+                self.model,
+                obs.window,
+                obs.belt_speed,
+                np.asarray(a, np.float32),
+                self.monitor.m.horizon,
+            )
+            a = self.monitor.decide(
+                self.t, a, np.asarray(errors), np.asarray(stop), self.sigma, 0, np.asarray(obs.belt_speed)
+            )
+        self.t += 1
+        return a
 
 
 class RobotLoop:
