@@ -239,3 +239,36 @@ def test_run_episode_with_faults_replays_and_a_perfect_world_is_unchanged():
 def test_faults_are_hashable_settings():
     f = F.Faults(obs_noise_mm=1.0)
     assert hash(f) == hash(dataclasses.replace(f))
+
+
+def test_a_gripper_at_rest_holds_the_box_still_in_the_estimate():
+    """The zero-velocity update: with the gripper known at rest the filter's velocity is zero and its
+    estimate averages frames, so a stopped box's estimate is steadier than the free filter's."""
+    dt = CFG.gripper.control_dt
+    f = F.Faults(obs_noise_mm=3.0)
+    free, still = make_filter(FilterConfig(), f, dt), make_filter(FilterConfig(), f, dt)
+    gen = np.random.default_rng(0)
+    err_free, err_still = [], []
+    for t in range(300):
+        z = np.array([-0.1, 0.1, 0.0, 0.02, 0.0])
+        z[2:4] += 3e-3 * gen.standard_normal(2)
+        a, b = free.step(z), still.step(z, still=True)
+        if t > 50:
+            err_free.append(a[geometry.Y] - 0.02)
+            err_still.append(b[geometry.Y] - 0.02)
+    assert np.all(still.x[:, 1] == 0.0)
+    assert np.std(err_still) < 0.7 * np.std(err_free)
+    assert still.y_std() < free.y_std()
+
+
+def test_the_world_knows_the_gripper_is_still_only_after_rest_was_sent_over_the_delay():
+    f = F.Faults(obs_noise_mm=3.0, obs_latency=2)
+    w = World(CFG, f, FilterConfig(), jax.random.PRNGKey(0), massdist.named("A", CFG.box))
+    rest, move = np.zeros(4), np.array([0.1, -0.1, 0.0, 0.0])
+    w.send(move)
+    assert not w._still(np.zeros(2))
+    for _ in range(w.delay + 1):
+        w.send(rest)
+        assert not w._still(np.zeros(2))
+    w.send(rest)
+    assert w._still(np.zeros(2)) and not w._still(np.array([0.02, 0.0]))

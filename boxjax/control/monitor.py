@@ -69,8 +69,8 @@ class MonitorConfig:
     # root of a control step: 1.65 / 2.48 / 3.68 mm rms of balance error at 1 / 2 / 4 steps with the prior
     # on the true box (scripts/monitor_study.py, docs/results/faults.md).
     delay_std: float = 0.0018
-    max_stops: int = 20  # the max_stops-th balance stop is final
-    stop_timeout: int = 60  # control steps a stop may last without resuming before it is final
+    max_stops: int = 60  # the max_stops-th balance stop is final
+    stop_timeout: int = 100  # control steps (5 s) a stop may last without resuming before it is final
     stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
     standstill_speed: float = 0.01  # m/s, |belt speed| under which the belts count as at rest
 

@@ -76,8 +76,11 @@ class FilterConfig:
 class PoseFilter:
     """Constant-velocity Kalman filters on (x, y, yaw) of one box (numpy, host-side, per control step).
 
-    step(s_obs (5,), fresh) -> (5,) the estimated present planar state. `fresh` says whether s_obs is a
-    new measurement (False: the sensor held its last frame; the filter only predicts).
+    step(s_obs (5,), fresh, still) -> (5,) the estimated present planar state. `fresh` says whether s_obs
+    is a new measurement (False: the sensor held its last frame; the filter only predicts); `still` that
+    the gripper is known to be at rest (its belts measured still, nothing commanded since the
+    measurement): the box's velocity is then zero (a zero-velocity update, as inertial navigation makes
+    at standstill), so a stopped box's estimate averages frames instead of chasing their noise.
     """
 
     def __init__(self, dt: float, noise: tuple[float, float], settings: FilterConfig, latency: int):
@@ -92,7 +95,7 @@ class PoseFilter:
         self.P: np.ndarray | None = None  # (3, 2, 2)
         self.p_carriages = np.zeros(2)
 
-    def step(self, s_obs, fresh: bool = True) -> np.ndarray:
+    def step(self, s_obs, fresh: bool = True, still: bool = False) -> np.ndarray:
         z = np.asarray(s_obs, np.float64)[list(_AXES)]
         self.p_carriages = np.asarray(s_obs, np.float64)[[geometry.P1, geometry.P2]]
         if self.x is None:  # the first frame: at rest where it is seen
@@ -108,6 +111,10 @@ class PoseFilter:
             K = self.P[:, :, 0] / S[:, None]  # (3, 2)
             self.x = self.x + K * innov[:, None]
             self.P = self.P - K[:, :, None] * self.P[:, None, 0, :]
+        if still:  # a zero-velocity update: the gripper is at rest, so is the box (it rests on the belts)
+            self.x[:, 1] = 0.0
+            self.P[:, 1, :] = 0.0
+            self.P[:, :, 1] = 0.0
         return self.output()
 
     def y_std(self) -> float:

@@ -15,12 +15,16 @@ With no faults every call is the identity and no random number is drawn: the epi
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from boxjax import massdist
 from boxjax.config import Config
 from boxjax.control.state_estimate import FilterConfig, make_filter, model_delay
 from boxjax.sim import faults as F
+
+STILL_SPEED = 0.005  # m/s: measured belt speeds under this, with rest commanded, are a gripper at rest
 
 
 class World:
@@ -46,6 +50,7 @@ class World:
         self.sensor = F.Sensor(faults, gen) if faults.observation else None
         self.actuator = F.Actuator(faults) if faults.action_latency else None
         self.filter = make_filter(pose_filter, faults, cfg.gripper.control_dt)
+        self._sent: deque = deque(maxlen=self.delay + 2)  # the actions sent lately (for `_still`)
 
     def prepare(self, model) -> None:
         """Apply the plant mismatch to this box's native model (in place)."""
@@ -61,7 +66,7 @@ class World:
             s, belt_speed, _, fresh = self.sensor.observe(s, belt_speed)
         self.stale = 0 if fresh else self.stale + 1
         if self.filter is not None:
-            s = self.filter.step(s, fresh)
+            s = self.filter.step(s, fresh, self._still(belt_speed))
         return np.asarray(s, np.float32), np.asarray(belt_speed, np.float32)
 
     def y_std(self) -> float:
@@ -73,8 +78,16 @@ class World:
             return 1e-3 * self.faults.obs_noise_mm
         return 0.0
 
+    def _still(self, belt_speed) -> bool:
+        """Whether the gripper is known to be at rest: its belts measured still, and nothing but rest sent
+        over the delay since the measurement (so the box on them is at rest too)."""
+        resting = len(self._sent) == self._sent.maxlen and not np.any(self._sent)
+        return bool(resting and np.all(np.abs(np.asarray(belt_speed)) <= STILL_SPEED))
+
     def send(self, action) -> np.ndarray:
         """The action (4,) the gripper applies this step, for `action` sent now."""
+        if self.active:
+            self._sent.append(np.asarray(action, np.float64))
         return action if self.actuator is None else self.actuator.send(action)
 
     def before_step(self, t: int, model, box_body: int) -> bool:
