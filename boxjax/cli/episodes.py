@@ -348,6 +348,8 @@ def cmd_demo(args) -> dict:
         say(s["abort_reason"])
     else:
         outcome = "turned the box by pi/2" if s["success"] else f"failed: {s['failed_reason']}"
+        if s.get("safe_stop"):
+            outcome = f"was stopped by the safety monitor ({s['safe_stop_reason']}), the box balanced,"
         say(
             f"MPC {outcome} in {s['steps']} steps ({s['steps'] - s['exploration_steps']} after exploring), "
             f"max balance error {100 * s['max_balance_error_m']:.1f} cm, "
@@ -361,7 +363,11 @@ def cmd_demo(args) -> dict:
         "seed": args.seed,
         **s,
     }
+    if s.get("monitor_stops"):
+        say(f"the runtime safety monitor stopped the belts {s['monitor_stops']} time(s)")
     verdict = "refused (hazardous)" if s["aborted"] else ("success" if s["success"] else "failure")
+    if s.get("safe_stop"):
+        verdict = "safe stop"
     if args.plot and res.belief is not None:
         from boxjax.viz.plots import plot_demo
 

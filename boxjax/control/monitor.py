@@ -174,7 +174,8 @@ class Monitor:
         self.final = False
         self.ended = False
         self.stopping_steps: set[int] = set()  # control steps at which a stop action was sent
-        self.log: list[tuple[int, float, float, float]] = []  # (t, go error, stop error, sigma) per check
+        # per check: (t, go error, stop error, the estimate's sigma before the delay's is added)
+        self.log: list[tuple[int, float, float, float]] = []
         self.would_stop: list[int] = []  # shadow mode: the steps at which it would have stopped
 
     def decide(self, t: int, action, errors, stop_action, sigma: float, stale: int, belt_speed) -> np.ndarray:
@@ -187,9 +188,9 @@ class Monitor:
           fresh frame; belt_speed: (2,) the estimated belt speeds.
         """
         m, limit = self.m, self.limit
+        self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))  # sigma as measured
         sigma = math.sqrt(sigma**2 + self.delay_var)  # the estimate's, and the prediction's over the delay
         go_error = float(errors[0]) + m.k_sigma * sigma
-        self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))
         if m.shadow:
             if stale > m.stale_steps or go_error >= m.stop_at * limit:
                 self.would_stop.append(t)
