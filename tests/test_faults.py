@@ -272,3 +272,18 @@ def test_the_world_knows_the_gripper_is_still_only_after_rest_was_sent_over_the_
         assert not w._still(np.zeros(2))
     w.send(rest)
     assert w._still(np.zeros(2)) and not w._still(np.array([0.02, 0.0]))
+
+
+def test_replay_with_faults_re_simulates_the_episode_and_the_controllers_view():
+    from boxjax import ControllerConfig, run_episode
+    from boxjax.control.batch import replay_episode
+    from boxjax.planners.sampling import SamplingOptions
+
+    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0))
+    faults = F.Faults(obs_noise_mm=3, obs_latency=2, action_latency=1, friction=0.4, mass_shift_kg=1.0,
+                      mass_shift_steps=(50, 60))  # fmt: skip
+    box, key = massdist.named("B", CFG.box), jax.random.PRNGKey(4)
+    ep = run_episode(CFG, box, key, ctrl=ctrl, max_steps=80, faults=faults)
+    again = replay_episode(CFG, box, key, ep.trace.actions, ctrl=ctrl, faults=faults)
+    np.testing.assert_array_equal(again.trace.s, ep.trace.s)
+    assert again.summary["aborted"] == ep.summary["aborted"]

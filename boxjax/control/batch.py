@@ -375,7 +375,7 @@ def run_episodes(
             b = queue.popleft()
             slot_box[k] = b
             model_b = put(_set_slot(model_b, k, models[b]))
-            one = put(_stack([models[b]] * n_dev))
+            one = put(_stack([models[b]] * n_dev)) if delay else None  # for the compensation only
             first_plan = jax.tree.map(lambda x: x[0], init_b(observations([b] * n_dev, one)))
             plan_b = put(_set_slot(plan_b, k, first_plan))
             keys_b = put(keys_b.at[k].set(key_plan[b]))
@@ -499,8 +499,7 @@ def replay_episode(
         if exploration_over(sent[t] if t + late < len(actions) else None):
             exploring = False
             decided = decided_now()
-        world.before_step(t, sim.models[0], sim.ids.box_body)
-        rec.sent.append(sent[t])
+        rec.send(sim, 0, sent[t])  # through the world, as sent: it applies `a` (the actuator's delay)
         sim.step(a[None], np.ones(1, bool))
         rec.add(sim, 0, a)
         n_explore += int(exploring)
