@@ -287,3 +287,23 @@ def test_replay_with_faults_re_simulates_the_episode_and_the_controllers_view():
     again = replay_episode(CFG, box, key, ep.trace.actions, ctrl=ctrl, faults=faults)
     np.testing.assert_array_equal(again.trace.s, ep.trace.s)
     assert again.summary["aborted"] == ep.summary["aborted"]
+
+
+def test_a_box_at_rest_is_averaged_to_the_noise_over_the_square_root_of_the_frames():
+    """At rest nothing moves the box, so the filter adds no process noise: after n frames its estimate's
+    error is the sensor's noise / sqrt(n) (the mean of n frames), and the variance it states says so."""
+    dt, noise = CFG.gripper.control_dt, 3e-3
+    f = F.Faults(obs_noise_mm=1e3 * noise)
+    errs, stds = [], []
+    for seed in range(200):
+        flt = make_filter(FilterConfig(), f, dt)
+        gen = np.random.default_rng(seed)
+        for _ in range(100):
+            z = np.array([-0.1, 0.1, 0.0, 0.02, 0.0])
+            z[3] += noise * gen.standard_normal()
+            est = flt.step(z, still=True)
+        errs.append(est[geometry.Y] - 0.02)
+        stds.append(flt.y_std())
+    expect = noise / np.sqrt(100)
+    assert np.std(errs) == pytest.approx(expect, rel=0.15)
+    assert np.mean(stds) == pytest.approx(expect, rel=0.15)

@@ -298,7 +298,9 @@ def run_episodes(
     # (each box through its own `explore.Guarded`, as `run_episode` does)
     n_explore = np.zeros(B, np.int32)
     guard_m = ctrl.explore_guard if model is None else None
-    guards = [explore.Guarded(cfg, guard_m) for _ in range(B)] if ctrl.explore else []
+    guards = (
+        [explore.Guarded(cfg, guard_m, settle=r.world.exploration_delay) for r in rec] if ctrl.explore else []
+    )
     exploring = np.full(B, bool(guards))
     while exploring.any():
         acts, live = np.zeros((B, 4)), np.zeros(B, bool)
@@ -333,7 +335,10 @@ def run_episodes(
         if guards and guards[b].tripped:
             decided[b] = ({}, None, guards[b].why())
         elif model is None:
-            decided[b] = decide(cfg, truths[b], rec[b].exploration(), estimator)
+            n_fixed = len(guards[b].actions) if guards else 0
+            decided[b] = decide(
+                cfg, truths[b], rec[b].world.for_estimator(rec[b].exploration(), n_fixed), estimator
+            )
         est, belief, why = decided[b]
         if why is not None or sim.t[b] >= max_steps:
             finish(b, int(n_explore[b]), False)
@@ -406,7 +411,7 @@ def run_episodes(
             if ctrl.monitor.enabled:  # the runtime safety monitor, all slots in one call
                 errors, stops = monitor.check_batch(
                     cfg, model_b, obs_b.window, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
-                    ctrl.monitor.horizon,
+                    ctrl.monitor.horizon, ctrl.monitor.backup,
                 )  # fmt: skip
                 errors, stops, belts = np.asarray(errors), np.asarray(stops), np.asarray(obs_b.belt_speed)
             full = np.zeros((B, 4))
@@ -470,7 +475,7 @@ def replay_episode(
     actions = np.asarray(actions, np.float64).reshape(-1, 4)
     late = faults.action_latency  # the action sent at step t is applied at t + late
     sent = np.concatenate([actions[late:], np.zeros((min(late, len(actions)), 4))])
-    guard = explore.Guarded(cfg, ctrl.explore_guard) if ctrl.explore else None
+    guard = explore.Guarded(cfg, ctrl.explore_guard, settle=world.exploration_delay) if ctrl.explore else None
     exploring, n_explore, lost = guard is not None, 0, False
     decided: tuple = ({}, None, None)
 
@@ -491,7 +496,7 @@ def replay_episode(
     def decided_now() -> tuple:
         if guard.tripped:
             return ({}, None, guard.why())
-        return decide(cfg, truth, rec.exploration(), estimator)
+        return decide(cfg, truth, world.for_estimator(rec.exploration(), len(guard.actions)), estimator)
 
     for t, a in enumerate(actions):
         if sim.done[0]:

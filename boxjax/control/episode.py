@@ -216,7 +216,11 @@ def run_episode(
 
     # 1. exploration (paper §2.2): a fixed open-loop sequence, guarded (`explore.Guarded`)
     n_explore = 0
-    guard = explore.Guarded(cfg, ctrl.explore_guard if model is None else None) if ctrl.explore else None
+    guard = (
+        explore.Guarded(cfg, ctrl.explore_guard if model is None else None, settle=world.exploration_delay)
+        if ctrl.explore
+        else None
+    )
     guard_steps: list[int] = []  # control steps of the guard's re-centring (a stop, for `crossing`)
     while guard is not None and not bool(state.done):
         s_seen = seen[-1][0]  # with a perfect sensor the true state, and its balance error as the env has it
@@ -237,7 +241,8 @@ def run_episode(
     if not lost_exploring and guard is not None and guard.tripped:
         why = guard.why()
     elif not lost_exploring and model is None:
-        est, belief, why = decide(cfg, truth, exploration, estimator)  # 3. refuse when hazardous
+        seen_by_estimator = world.for_estimator(exploration, len(guard.actions) if guard else 0)
+        est, belief, why = decide(cfg, truth, seen_by_estimator, estimator)  # 3. refuse when hazardous
     plan_ms: list[float] = []
     adapt_s, adaptations = 0.0, 0
     if why is None and not lost_exploring:
@@ -277,7 +282,13 @@ def run_episode(
                 raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
             if mon is not None:  # the runtime safety monitor: send the action, or stop
                 errors, stop_a = monitor.check(
-                    cfg, model, obs.window, obs.belt_speed, jnp.asarray(a, jnp.float32), ctrl.monitor.horizon
+                    cfg,
+                    model,
+                    obs.window,
+                    obs.belt_speed,
+                    jnp.asarray(a, jnp.float32),
+                    ctrl.monitor.horizon,
+                    ctrl.monitor.backup,
                 )
                 a = mon.decide(
                     len(actions),

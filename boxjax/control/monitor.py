@@ -7,17 +7,19 @@ gripper then stops (a simplex architecture's backup controller, or a predictive 
 trajectory). If the predicted balance error over that horizon, plus `k_sigma` standard deviations of
 the state estimate's uncertainty about the box's y, reaches the stop threshold, the action is replaced
 by the stop: a category-2 controlled stop in the industrial sense, power kept, the belts commanded to
-rest (the drives decelerate at their acceleration limit) and both carriages moved under the box's
-centre (`backup_actions`). The stop is issued while the stop itself still keeps the box balanced, which
-is what "about to" means here.
+rest (the drives decelerate at their acceleration limit) and the carriages either held or moved together
+under the box's centre (`backup_set`; `MonitorConfig.backup` "best": whichever the model predicts
+safer). The stop is issued while the stop itself still keeps the box balanced, which is what "about to"
+means here, and once issued it is followed as planned (a predictive safety filter's committed backup
+trajectory), then rest.
 
 A stop is a state, not an end:
 
-* While stopped the planner keeps planning; once the belts are at rest (standstill watched:
-  |measured belt speed| <= `standstill_speed`)
-  and the planner's next step and stop are predicted within `resume_below` (hysteresis: below
-  `stop_at`), the turn resumes. An episode that resumes and
-  finishes is a success.
+* While stopped the planner keeps planning; once the gripper is known at rest (standstill watched: the
+  belts at rest, |belt speed| <= `standstill_speed`, and nothing but rest sent over the loop's delay, so
+  the estimate is observed, not predicted through the stop's own carriage moves) and the planner's next
+  step and stop are predicted within `resume_below` (hysteresis: below `stop_at`), the turn resumes.
+  An episode that resumes and finishes is a success.
 * The `max_stops`-th balance stop is final, as is a stop that cannot resume within `stop_timeout`
   control steps: the gripper comes to rest, the episode ends `safe_stop` with its reason, kept apart
   from failures (`REASONS`).
@@ -28,7 +30,7 @@ A stop is a state, not an end:
 The monitor checks from the state at which the action will apply: the controller's estimate, predicted
 over the loop's delays (sensor and action latency) by `planning.compensate`.
 
-The check is one jitted, vmappable computation (`predicted_errors`: two rollouts of `horizon` steps); the
+The check is one jitted, vmappable computation (`predicted_errors`: four rollouts of `horizon` steps); the
 state machine around it is host-side Python (`Monitor`, one per episode), the same in `run_episode` and
 the batched `run_episodes`. Its measured cost per control step is in benchmarks/planner.py.
 """
@@ -37,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import deque
 from functools import partial
 
 import jax
@@ -50,6 +53,10 @@ from boxjax.config import Config, ConfigError
 BALANCE, STALE = "balance", "stale_observation"
 REASONS = (BALANCE, STALE)
 RUN, STOP = "run", "stop"
+# The controlled stops the monitor can issue (`backup_actions`): belts to rest, carriages held where they
+# are or moved toward the box's centre; "best" lets the model pick the one predicted safer.
+BACKUPS = ("hold", "recentre")
+BACKUP_CHOICES = ("best", *BACKUPS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +80,12 @@ class MonitorConfig:
     stop_timeout: int = 100  # control steps (5 s) a stop may last without resuming before it is final
     stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
     standstill_speed: float = 0.01  # m/s, |belt speed| under which the belts count as at rest
+    # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, every check, between holding
+    # them and moving them toward the box's centre; "hold" or "recentre" always that one. Moving a
+    # carriage drags the box on its belt with it: with one carriage at its stop, re-centring moved a
+    # development box 7.4 cm for 12 cm of carriage travel and its balance error grew from 2.0 to 3.1 cm
+    # while stopped (docs/results/faults.md).
+    backup: str = "best"
 
     def __post_init__(self):
         def bad(name, why):
@@ -95,6 +108,8 @@ class MonitorConfig:
                 bad(name, "must be a whole number >= 1")
         if not self.standstill_speed > 0:
             bad("standstill_speed", "must be a positive speed (m/s)")
+        if self.backup not in BACKUP_CHOICES:
+            bad("backup", f"must be one of {BACKUP_CHOICES}")
 
 
 OFF = MonitorConfig(enabled=False)
@@ -104,14 +119,15 @@ OFF = MonitorConfig(enabled=False)
 # The check (pure jnp, one box; vmap for batches).
 
 
-def backup_actions(cfg: Config, s, n: int) -> jax.Array:
-    """(n, 4) the controlled stop from the planar state s (5,): belt speeds 0 (the drives decelerate at
-    their limit) and both carriages moved together toward the box's centre, at most `max_position_step`
-    per step and within their ranges, so that the midpoint between the belts comes under the box."""
+def backup_actions(cfg: Config, s, n: int, recentre: bool = True) -> jax.Array:
+    """(n, 4) a controlled stop from the planar state s (5,): belt speeds 0 (the drives decelerate at
+    their limit) and, with `recentre`, both carriages moved together toward the box's centre, at most
+    `max_position_step` per step and within their ranges, so that the midpoint between the belts comes
+    under the box (without: the carriages hold)."""
     g = cfg.gripper
     offset = s[geometry.Y] - 0.5 * (s[geometry.P1] + s[geometry.P2])
     reach = g.max_position_step * jnp.arange(1, n + 1)
-    moved = jnp.clip(offset, -reach, reach)  # (n,) cumulative move of the midpoint
+    moved = jnp.clip(offset, -reach, reach) * recentre  # (n,) cumulative move of the midpoint
 
     def carriage(p, lo, hi):
         c = jnp.clip(p + moved, lo, hi) - p
@@ -122,34 +138,44 @@ def backup_actions(cfg: Config, s, n: int) -> jax.Array:
     return jnp.stack([jnp.zeros(n), jnp.zeros(n), d1, d2], axis=1).astype(jnp.float32)
 
 
-def predicted_errors(cfg: Config, model, window, belt_speed, action, horizon: int) -> jax.Array:
-    """(2,) m: the largest balance error, now (the window's newest state) and over `horizon` predicted
-    steps, of (a) `action` followed by the stop and (b) the stop at once."""
-    backup = backup_actions(cfg, window[-1], horizon)
-    go = jnp.concatenate([action[None].astype(jnp.float32), backup[:-1]])
+def backup_set(cfg: Config, s, n: int, backup: str = "best") -> jax.Array:
+    """(V, n, 4) the stops the monitor chooses between (`MonitorConfig.backup`): both of `BACKUPS` for
+    "best", else the one named."""
+    names = BACKUPS if backup == "best" else (backup,)
+    return jnp.stack([backup_actions(cfg, s, n, recentre=name == "recentre") for name in names])
+
+
+def predicted_errors(
+    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best"
+) -> tuple[jax.Array, jax.Array]:
+    """((2,) m, (horizon, 4)): the largest balance error, now (the window's newest state) and over
+    `horizon` predicted steps, of (a) `action` followed by a stop and (b) a stop at once, each with the
+    stop of `backup_set` predicted safest; and the stop predicted safest at once (the plan a stop issued
+    now follows: `Monitor`)."""
+    backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
+    first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
+    go = jnp.concatenate([first, backups[:, :-1]], 1)
     rollout = jax.vmap(model.rollout_sequence, in_axes=(None, None, 0))
-    states = rollout(window, belt_speed, jnp.stack([go, backup]))
-    errors = jax.vmap(jax.vmap(geometry.balance_error))(states)  # (2, horizon)
+    states = rollout(window, belt_speed, jnp.concatenate([go, backups]))  # (2V, horizon, 5)
+    errors = jax.vmap(jax.vmap(geometry.balance_error))(states)
     errors = jnp.where(jnp.isfinite(errors), errors, jnp.inf)  # a model that diverges is not believed safe
-    return jnp.maximum(jnp.max(errors, axis=1), geometry.balance_error(window[-1]))
+    worst = jnp.max(errors, axis=1).reshape(2, -1)  # (go | stop, V)
+    now = geometry.balance_error(window[-1])
+    return jnp.maximum(jnp.min(worst, axis=1), now), backups[jnp.argmin(worst[1])]
 
 
-def _check(cfg: Config, model, window, belt_speed, action, horizon: int):
-    return predicted_errors(cfg, model, window, belt_speed, action, horizon), backup_actions(
-        cfg, window[-1], 1
-    )[0]
+@partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
+def check(cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best"):
+    """Jitted `predicted_errors`: ((2,) go and stop errors, (horizon, 4) the safest stop's plan)."""
+    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup)
 
 
-@partial(jax.jit, static_argnames=("cfg", "horizon"))
-def check(cfg: Config, model, window, belt_speed, action, horizon: int):
-    """Jitted: ((2,) `predicted_errors`, (4,) the stop's action now)."""
-    return _check(cfg, model, window, belt_speed, action, horizon)
-
-
-@partial(jax.jit, static_argnames=("cfg", "horizon"))
-def check_batch(cfg: Config, models, windows, belt_speeds, actions, horizon: int):
+@partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
+def check_batch(cfg: Config, models, windows, belt_speeds, actions, horizon: int, backup: str = "best"):
     """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's)."""
-    return jax.vmap(partial(_check, cfg, horizon=horizon))(models, windows, belt_speeds, actions)
+    return jax.vmap(partial(predicted_errors, cfg, horizon=horizon, backup=backup))(
+        models, windows, belt_speeds, actions
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -177,50 +203,69 @@ class Monitor:
         # per check: (t, go error, stop error, the estimate's sigma before the delay's is added)
         self.log: list[tuple[int, float, float, float]] = []
         self.would_stop: list[int] = []  # shadow mode: the steps at which it would have stopped
+        self._plan: deque = deque()  # the stop's actions still to send (then rest)
+        self._sent: deque = deque(maxlen=delay + 1)  # the actions sent lately (`_still`)
 
-    def decide(self, t: int, action, errors, stop_action, sigma: float, stale: int, belt_speed) -> np.ndarray:
+    def decide(self, t: int, action, errors, stop_plan, sigma: float, stale: int, belt_speed) -> np.ndarray:
         """The action to send at control step t.
 
         Args:
-          action: the planner's (4,). errors: (2,) `predicted_errors` (go, stop). stop_action: (4,) the
-          stop's action now. sigma: the std of the estimate's y at its measurement (m; the prediction's
-          over the delay is added, `delay_std`); stale: control steps since the last
-          fresh frame; belt_speed: (2,) the estimated belt speeds.
+          action: the planner's (4,). errors: (2,) `predicted_errors` (go, stop). stop_plan: (n, 4) the
+          stop predicted safest from now (`predicted_errors`): a stop issued now sends it, then rest.
+          sigma: the std of the estimate's y at its measurement (m; the prediction's over the delay is
+          added, `delay_std`, unless the gripper is known at rest); stale: control steps since the
+          last fresh frame; belt_speed: (2,) the estimated belt speeds.
         """
         m, limit = self.m, self.limit
         self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))  # sigma as measured
-        sigma = math.sqrt(sigma**2 + self.delay_var)  # the estimate's, and the prediction's over the delay
+        still = self._still(belt_speed)
+        sigma = math.sqrt(
+            sigma**2 + (0.0 if still else self.delay_var)
+        )  # and the prediction's over the delay
         go_error = float(errors[0]) + m.k_sigma * sigma
         if m.shadow:
             if stale > m.stale_steps or go_error >= m.stop_at * limit:
                 self.would_stop.append(t)
-            return np.asarray(action, np.float64)
+            return self._send(action)
         if self.mode == RUN:
             why = STALE if stale > m.stale_steps else (BALANCE if go_error >= m.stop_at * limit else None)
             if why is not None:
-                self._stop(t, why)
+                self._stop(t, why, stop_plan)
         else:
             self.stopped_for += 1
-            at_rest = bool(np.all(np.abs(np.asarray(belt_speed)) <= m.standstill_speed))
             if not self.final:
                 if self.reason == STALE:  # fresh frames again, and the action is safe
                     can_go = stale <= m.stale_steps and go_error < m.stop_at * limit
-                else:  # at rest, and the turn's next step and stop predicted well inside the limit
-                    can_go = at_rest and go_error < m.resume_below * limit
+                else:  # known at rest, and the turn's next step and stop predicted well inside the limit
+                    can_go = still and go_error < m.resume_below * limit
                 if can_go:
                     self.mode, self.reason = RUN, None
                     self.resumes.append(t)
                 elif self.stopped_for >= m.stop_timeout:
                     self.final = True
-            if self.final and at_rest and self.stopped_for >= 2:
+            if self.final and still and self.stopped_for >= 2:
                 self.ended = True
-        out = np.asarray(action, np.float64) if self.mode == RUN else np.asarray(stop_action, np.float64)
-        if self.mode == STOP:
-            self.stopping_steps.add(t)
-        return out
+        if self.mode == RUN:
+            return self._send(action)
+        self.stopping_steps.add(t)
+        return self._send(self._plan.popleft() if self._plan else np.zeros(4))
 
-    def _stop(self, t: int, why: str) -> None:
+    def _send(self, a) -> np.ndarray:
+        a = np.asarray(a, np.float64)
+        self._sent.append(a)
+        return a
+
+    def _still(self, belt_speed) -> bool:
+        """The gripper known at rest: its belts at rest and nothing but rest sent over the loop's delay
+        and the step before it (so the estimate comes from a frame taken after a step of rest and is
+        predicted over rest only: a stop resumes from a state observed at rest, not one predicted
+        through its own carriage moves)."""
+        rested = len(self._sent) == self._sent.maxlen and not np.any(np.asarray(self._sent))
+        return rested and bool(np.all(np.abs(np.asarray(belt_speed)) <= self.m.standstill_speed))
+
+    def _stop(self, t: int, why: str, plan) -> None:
         self.mode, self.reason, self.stopped_for = STOP, why, 0
+        self._plan = deque(np.asarray(plan, np.float64).reshape(-1, 4))
         self.stops.append((t, why))
         if why == BALANCE:
             self.balance_stops += 1

@@ -103,7 +103,8 @@ class PoseFilter:
             self.P = np.stack([np.diag([r, 0.01]) for r in self.R])
             return self.output()
         self.x = self.x @ self.F.T
-        self.P = self.F @ self.P @ self.F.T + self.Q
+        # at rest nothing moves the box: no process noise, so frames of a box at rest are averaged
+        self.P = self.F @ self.P @ self.F.T + (0.0 if still else self.Q)
         if fresh:
             innov = z - self.x[:, 0]
             innov[2] = (innov[2] + np.pi) % (2 * np.pi) - np.pi  # yaw: the nearest turn
@@ -127,6 +128,13 @@ class PoseFilter:
         q = self.Q[1, 1, 1] / self.dt  # white-acceleration intensity (m^2/s^3)
         var = p[0, 0] + 2 * tau * p[0, 1] + tau**2 * p[1, 1] + q * tau**3 / 3
         return float(np.sqrt(max(var, 0.0)))
+
+    def measured(self) -> np.ndarray:
+        """(5,) the state at the newest frame's measurement time (the carriages as measured)."""
+        s = np.zeros(5)
+        s[[geometry.P1, geometry.P2]] = self.p_carriages
+        s[list(_AXES)] = self.x[:, 0]
+        return s
 
     def output(self) -> np.ndarray:
         """(5,) the present state: the carriages as measured, the pose predicted over the latency."""

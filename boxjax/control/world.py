@@ -21,7 +21,8 @@ import numpy as np
 
 from boxjax import massdist
 from boxjax.config import Config
-from boxjax.control.state_estimate import FilterConfig, make_filter, model_delay
+from boxjax.control.state_estimate import FilterConfig, make_filter, model_delay, sensor_latency
+from boxjax.estimator import explore
 from boxjax.sim import faults as F
 
 STILL_SPEED = 0.005  # m/s: measured belt speeds under this, with rest commanded, are a gripper at rest
@@ -39,9 +40,25 @@ class World:
         self.faults = faults
         self.active = faults.any
         self.stale = 0  # steps since the last fresh frame
+        # the gripper known at rest at the last observation (`_still`): the estimate's prediction over the
+        # delay is then exact (the box does not move)
+        self.still = False
         # control steps between the newest estimate and the application of the next action, which the
         # controller bridges with its model (`planning.compensate`)
         self.delay = model_delay(pose_filter, faults)
+        # control steps from an action sent to the frame that shows its effect, as the controller knows
+        # them (its sensor's latency and the drives'): how long the exploration waits for its last frames
+        # (`explore.Guarded(settle=...)`) and how its record is aligned for the estimator (`for_estimator`)
+        acting = pose_filter.action_latency_steps
+        self.exploration_delay = (
+            sensor_latency(pose_filter, faults) * faults.observation
+            + (faults.action_latency if acting is None else acting)
+            if self.active
+            else 0
+        )
+        # per observation: the pose at its frame's measurement time (the filter's, or the raw frame's), the
+        # belt speeds and whether the frame was fresh: what the estimator is given (`for_estimator`)
+        self.frames: list[tuple[np.ndarray, np.ndarray, bool]] = []
         if not self.active:
             self.sensor = self.actuator = self.filter = self.shift = None
             return
@@ -60,14 +77,41 @@ class World:
     def observe(self, s, belt_speed) -> tuple[np.ndarray, np.ndarray]:
         """The planar state (5,) and belt speeds (2,) the controller works with, from the true ones."""
         if self.sensor is None and self.filter is None:
+            if self.exploration_delay:  # action latency alone: the true state, as it is when it arrives
+                self.frames.append((np.asarray(s, np.float32), np.asarray(belt_speed, np.float32), True))
             return np.asarray(s), np.asarray(belt_speed)
         fresh = True
         if self.sensor is not None:
             s, belt_speed, _, fresh = self.sensor.observe(s, belt_speed)
         self.stale = 0 if fresh else self.stale + 1
+        self.still = self._still(belt_speed)
+        measured = s
         if self.filter is not None:
-            s = self.filter.step(s, fresh, self._still(belt_speed))
+            s = self.filter.step(s, fresh, self.still)
+            measured = self.filter.measured()
+        self.frames.append((np.asarray(measured, np.float32), np.asarray(belt_speed, np.float32), fresh))
         return np.asarray(s, np.float32), np.asarray(belt_speed, np.float32)
+
+    def for_estimator(self, data: dict, n_steps: int) -> dict:
+        """The exploration as the estimator takes it, from the controller's record `data` (states and belt
+        speeds seen, actions sent, `episode._controller_data`) of the fixed sequence's `n_steps` and the
+        rest sent after it: the poses at their measurement times, a dropped frame (held: its pose, the
+        carriages and belt speeds stale) replaced by the straight line between the fresh frames around it
+        (the record is complete by now, so the estimator need not see a stale frame), aligned with the
+        actions that led to them (`explore.align`; a step cap that cut the rest short: aligned by the
+        frames that arrived). With a perfect sensor and no action latency: `data` itself."""
+        if not self.frames:
+            return data
+        frames = {
+            "s": held_frames_interpolated([s for s, _, _ in self.frames], [f for *_, f in self.frames]),
+            "belt_speed": held_frames_interpolated(
+                [b for _, b, _ in self.frames], [f for *_, f in self.frames]
+            ),
+            "actions": data["actions"],
+        }
+        # a step cap that cut the rest short leaves fewer frames: align by what arrived
+        delay = min(self.exploration_delay, len(frames["s"]) - 1 - n_steps)
+        return explore.align(frames, max(delay, 0), n_steps)
 
     def y_std(self) -> float:
         """(m) the standard deviation of the controller's estimate of the box's y: the filter's, the
@@ -96,3 +140,16 @@ class World:
             self.shift.apply(model, box_body)
             return True
         return False
+
+
+def held_frames_interpolated(values, fresh) -> np.ndarray:
+    """(K, n) the frames `values` (K of (n,)) with each held one (`fresh` False) replaced by the linear
+    interpolation, per component, between the fresh frames before and after it (held at the ends: the
+    nearest fresh frame). Yaw is interpolated as it is (frames 0.05 s apart do not wrap)."""
+    v = np.asarray(values, np.float64)
+    ok = np.asarray(fresh, bool)
+    if ok.all() or not ok.any():
+        return v.astype(np.float32)
+    k, idx = np.arange(len(v)), np.flatnonzero(ok)
+    out = np.stack([np.interp(k, idx, v[idx, j]) for j in range(v.shape[1])], axis=1)
+    return out.astype(np.float32)

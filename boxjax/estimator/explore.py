@@ -242,12 +242,19 @@ class Guarded:
     (`controller.run_episode`, `batch.run_episodes`, the replay) steps through this one object, so they
     make the same decision."""
 
-    def __init__(self, cfg: Config, guard: float | None):
+    def __init__(self, cfg: Config, guard: float | None, settle: int = 0):
+        """`settle`: control steps of rest (belts to rest, carriages still) sent after the fixed sequence,
+        while the frames of its last steps are still on their way (the controller's sensor and action
+        latency: `World.exploration_delay`); the estimator then sees the whole sequence (`align`)."""
         if guard is not None and not 0 < guard < 1:
             raise ValueError(
                 f"the exploration guard must be a fraction of the balance limit in (0, 1), got {guard}"
             )
+        if settle < 0:
+            raise ValueError(f"settle must be >= 0 control steps, got {settle}")
         self.cfg = cfg
+        self.settle = settle
+        self.settled = 0  # rest steps sent after the fixed sequence
         self.threshold = None if guard is None else guard * cfg.task.balance_limit  # m
         self.actions = exploration_actions(cfg)
         self.k = 0  # fixed-sequence steps sent
@@ -268,7 +275,10 @@ class Guarded:
             self.recentring -= 1
             return recentre_action(self.cfg, s)
         if self.k >= len(self.actions):
-            return None
+            if self.settled >= self.settle:
+                return None
+            self.settled += 1
+            return np.zeros(4)
         self.k += 1
         return self.actions[self.k - 1]
 
@@ -285,6 +295,30 @@ class Guarded:
         )
 
 
+def align(data: dict, delay: int, n_steps: int) -> dict:
+    """The exploration as the estimator takes it (`trajectory`'s input: the states before and after each
+    fixed step and the step's action, at the same instants), from the controller's record of it.
+
+    With `delay` control steps between an action sent and the frame that shows its effect (the sensor's
+    latency plus the drives' action latency), the frame received at step k + delay shows the state the
+    k-th action started from; so the states (and belt speeds) are those received from step `delay` on,
+    the actions the first `n_steps` sent. `data`: s (K+1, 5), belt_speed (K+1, 2), actions (K, 4) with
+    K >= n_steps + delay (the fixed sequence, then `Guarded.settle` rest steps). delay 0: the first
+    n_steps (the record as it is, with a perfect sensor).
+    """
+    s, b, a = (np.asarray(data[k]) for k in ("s", "belt_speed", "actions"))
+    if delay < 0 or len(s) < n_steps + delay + 1 or len(a) < n_steps:
+        raise ValueError(
+            f"cannot align {len(a)} recorded steps to {n_steps} exploration steps with a delay of {delay}: "
+            f"need {n_steps + delay} steps recorded"
+        )
+    return {
+        "s": s[delay : delay + n_steps + 1],
+        "belt_speed": b[delay : delay + n_steps + 1],
+        "actions": a[:n_steps],
+    }
+
+
 __all__ = [
     "GUARD_STEPS",
     "HOLD",
@@ -293,6 +327,7 @@ __all__ = [
     "N_VECTORS",
     "VECTORS",
     "Guarded",
+    "align",
     "applied_actions",
     "describe_effect",
     "exploration_actions",

@@ -92,6 +92,7 @@ class PlannerStep:
                 obs.belt_speed,
                 np.asarray(a, np.float32),
                 self.monitor.m.horizon,
+                self.monitor.m.backup,
             )
             a = self.monitor.decide(
                 self.t, a, np.asarray(errors), np.asarray(stop), self.sigma, 0, np.asarray(obs.belt_speed)
