@@ -88,3 +88,19 @@ def test_a_perfect_sensor_leaves_the_data_and_the_view_is_reproducible():
     assert not np.allclose(a["traj"], data["traj"])
     with pytest.raises(ValueError, match="drop_rate"):
         SensorRandomisation(drop_rate=(0.0, 1.0))
+
+
+def test_train_estimator_with_a_randomised_sensor_trains_on_the_view_and_says_so(tmp_path):
+    from boxjax import estimator as E
+    from boxjax.training import dataset as ds
+    from boxjax.training.estimator import train_estimator
+
+    tiny = E.EstimatorConfig(hidden=(16,), members=1, max_epochs=2, patience=1, batch_size=8)
+    report = train_estimator(
+        3, 12, tmp_path, CFG, est_cfg=tiny, progress=False, sensor=SensorRandomisation(p_perfect=0.0)
+    )
+    data, _ = ds.load(tmp_path / "dataset.npz")  # the exact explorations are what is kept on disk
+    view = sensor_view(data, CFG, SensorRandomisation(p_perfect=0.0), 3)
+    assert not np.allclose(view["traj"], data["traj"])
+    model = E.load(report["weights"])
+    assert model.provenance["sensor_randomisation"]["p_perfect"] == 0.0

@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import sys
 
-from boxjax.cli.args import at_least, option
+from boxjax.cli.args import at_least, option, when
 
 
 def cmd_fault_table(args) -> dict:
@@ -17,6 +17,11 @@ def cmd_fault_table(args) -> dict:
     rows = tuple(args.rows) if args.rows else fault_table.ROW_NAMES
     for name in rows:
         fault_table.row(name)  # an unknown row is refused before any episode runs
+    if args.weights:  # a checkpoint that does not fit is refused before any episode runs
+        from boxjax.cli import models as cli_models
+        from boxjax.config import DEFAULT as cfg
+
+        cli_models.require_models(cfg, estimator=True, weights=args.weights)
     for path, what in ((args.out, "--out"), (args.plot, "--plot")):
         if path:
             check_writable_dir(os.path.dirname(os.path.abspath(path)), f"{what}'s directory")
@@ -39,6 +44,7 @@ def cmd_fault_table(args) -> dict:
         rows=rows,
         monitors=monitors,
         estimator=args.estimator,
+        weights=args.weights,
         hazardous=args.hazardous,
         out=args.out,
         progress=progress,
@@ -61,6 +67,13 @@ def add_parsers(sub) -> None:
     option(p, "--hazardous", type=int, default=0, check=at_least(0), help="random hazardous boxes per row")
     option(p, "--seed", type=int, default=0, help="draws the boxes and every episode's key")
     option(p, "--estimator", default="oracle", choices=("oracle", "learned"), help="oracle or the learned H")
+    option(
+        p,
+        "--weights",
+        used_by=(when("estimator", "learned"),),
+        help="the learned H's checkpoint (default: the one shipped with boxjax), e.g. one trained with "
+        "train-estimator --randomise-sensor",
+    )
     option(
         p,
         "--rows",

@@ -23,6 +23,7 @@ from typing import Any, NamedTuple
 from boxjax.config import Config
 from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig
+from boxjax.estimator.belief import learned_estimator
 from boxjax.experiments import evaluation
 from boxjax.fileio import atomic_path
 from boxjax.sim.faults import Faults
@@ -111,13 +112,17 @@ def run(
     rows: tuple[str, ...] = ROW_NAMES,
     monitors: tuple[str, ...] = MONITOR,
     estimator: str = "oracle",
+    weights: str | None = None,
     hazardous: int = 0,
     ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008 (frozen dataclass: immutable)
     out: str | None = None,
     progress: Any = None,
 ) -> dict:
     """The table (plain data). With `out`, written there after each (row, monitor) pair and resumed
-    from it: pairs already in the file (for the same boxes, seed and controller) are not run again."""
+    from it: pairs already in the file (for the same boxes, seed, estimator and controller) are not run
+    again. `weights`: the learned H's checkpoint (None: the shipped one)."""
+    if weights is not None and estimator != "learned":
+        raise ValueError("weights are the learned estimator's checkpoint; estimator must be 'learned'")
     for name in rows:
         row(name)
     head = {
@@ -126,8 +131,10 @@ def run(
         "hazardous": hazardous,
         "seed": seed,
         "estimator": estimator,
+        **({"weights": weights} if weights else {}),
         "controller": evaluation.settings(estimator, ctrl, seed, "gaussian")["controller"],
     }
+    estimator_fn = learned_estimator(cfg, weights) if weights else None
     table = _load(out, head) if out else None
     table = table or {**head, "rows": {}}
     for name in rows:
@@ -143,8 +150,9 @@ def run(
             if m == "on" and not c.monitor.enabled:
                 c = dataclasses.replace(c, monitor=monitor.MonitorConfig())
             ev = evaluation.evaluate(
-                cfg, n_boxes, hazardous, seed, estimator=estimator, ctrl=c, faults=r.faults, progress=False
-            )
+                cfg, n_boxes, hazardous, seed, estimator=estimator, ctrl=c, faults=r.faults, progress=False,
+                estimator_fn=estimator_fn,
+            )  # fmt: skip
             entry[m] = _entry(ev)
             if "on" in entry and "off" in entry:
                 entry["monitor_effect"] = false_stops(entry["on"], entry["off"])

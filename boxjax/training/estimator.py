@@ -11,6 +11,7 @@ report of the session that built it): see `DEFAULT_ESTIMATOR`'s comment.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -24,6 +25,7 @@ from boxjax.config import DEFAULT, Config
 from boxjax.estimator import explore, shipped
 from boxjax.fileio import atomic_path
 from boxjax.training import dataset as ds
+from boxjax.training.randomise import SensorRandomisation, sensor_view
 
 # Chosen by measurement (2000 boxes, 600 fresh test boxes, the exploration of the time): an ensemble of 5
 # nets of 900 -> 256 -> 256 -> 256 -> (256 | 1 | 1), 2.1e6 parameters in all (the paper's H has ~2e6),
@@ -90,6 +92,7 @@ def train_estimator(
     chunk: int = 500,
     progress: bool = True,
     weights_name: str = "estimator.npz",
+    sensor: SensorRandomisation | None = None,
 ) -> dict:
     """Generate an exploration dataset, train H on it, calibrate its thresholds, write everything.
 
@@ -103,6 +106,9 @@ def train_estimator(
       backend: "native" or "mjx" simulation.
       chunk: boxes per batched rollout call (`boxjax.training.dataset.generate`; bounds memory, and larger
         batches fill an accelerator under MJX).
+      sensor: train on the explorations as sensors drawn from this distribution show them
+        (`boxjax.training.randomise`, domain randomisation: an H that keeps its hazard decision under
+        pose noise and dropped frames); None: on the simulator's exact states. dataset.npz stays exact.
     Returns:
       the report (also written to out_dir/report.json): seed, paths, timings (data_s, train_s, total_s),
       dataset summary, training summary, calibration, and the validation-split metrics (METRIC_KEYS...).
@@ -120,6 +126,8 @@ def train_estimator(
     data_s = time.perf_counter() - t0
     meta = ds.make_meta(cfg, seed, p_hazardous, backend, key=_key_record(key), seconds=data_s)
     ds.save(out / "dataset.npz", data, meta)
+    if sensor is not None:
+        data = sensor_view(data, cfg, sensor, seed if seed is not None else 0)
 
     t0 = time.perf_counter()
     provenance = {
@@ -131,6 +139,7 @@ def train_estimator(
         "backend": backend,
         "config": cfg.to_dict(),
         "exploration_actions": np.asarray(explore.exploration_actions(cfg)).tolist(),
+        "sensor_randomisation": None if sensor is None else dataclasses.asdict(sensor),
     }
     model, history = E.train(key_train, data, est_cfg, box=cfg.box, progress=progress, provenance=provenance)
     val = {k: v[history["val_index"]] for k, v in data.items()}
