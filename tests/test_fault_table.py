@@ -15,7 +15,7 @@ def _fake_evaluate(outcomes):
     """An `evaluation.evaluate` stand-in that returns `outcomes[(faults, monitor on?)]` as its rows."""
     calls = []
 
-    def evaluate(cfg, n, hazardous, seed, *, estimator, ctrl, faults, progress):
+    def evaluate(cfg, n, hazardous, seed, *, estimator, ctrl, faults, progress, estimator_fn=None):
         calls.append((faults, ctrl.monitor.enabled))
         on = ctrl.monitor.enabled
         rows = [
