@@ -40,8 +40,7 @@ class World:
         self.faults = faults
         self.active = faults.any
         self.stale = 0  # steps since the last fresh frame
-        # the gripper known at rest at the last observation (`_still`): the estimate's prediction over the
-        # delay is then exact (the box does not move)
+        # the gripper known at rest at the last observation (`_still`): the filter's zero-velocity update
         self.still = False
         # control steps between the newest estimate and the application of the next action, which the
         # controller bridges with its model (`planning.compensate`)
