@@ -80,8 +80,8 @@ class MonitorConfig:
     stop_timeout: int = 100  # control steps (5 s) a stop may last without resuming before it is final
     stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
     standstill_speed: float = 0.01  # m/s, |belt speed| under which the belts count as at rest
-    # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, every check, between holding
-    # them and moving them toward the box's centre; "hold" or "recentre" always that one. Moving a
+    # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, made when the stop is issued,
+    # between holding them and moving them toward the box's centre; "hold" or "recentre" always. Moving a
     # carriage drags the box on its belt with it: with one carriage at its stop, re-centring moved a
     # development box 7.4 cm for 12 cm of carriage travel and its balance error grew from 2.0 to 3.1 cm
     # while stopped (docs/results/faults.md).
@@ -219,9 +219,8 @@ class Monitor:
         m, limit = self.m, self.limit
         self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))  # sigma as measured
         still = self._still(belt_speed)
-        sigma = math.sqrt(
-            sigma**2 + (0.0 if still else self.delay_var)
-        )  # and the prediction's over the delay
+        delay_var = 0.0 if still else self.delay_var  # the prediction's over the delay; exact at rest
+        sigma = math.sqrt(sigma**2 + delay_var)
         go_error = float(errors[0]) + m.k_sigma * sigma
         if m.shadow:
             if stale > m.stale_steps or go_error >= m.stop_at * limit:
