@@ -266,12 +266,12 @@ def test_the_world_knows_the_gripper_is_still_only_after_rest_was_sent_over_the_
     w = World(CFG, f, FilterConfig(), jax.random.PRNGKey(0), massdist.named("A", CFG.box))
     rest, move = np.zeros(4), np.array([0.1, -0.1, 0.0, 0.0])
     w.send(move)
-    assert not w._still(np.zeros(2))
+    assert not w.rest.still(np.zeros(2))
     for _ in range(w.delay + 1):
         w.send(rest)
-        assert not w._still(np.zeros(2))
+        assert not w.rest.still(np.zeros(2))
     w.send(rest)
-    assert w._still(np.zeros(2)) and not w._still(np.array([0.02, 0.0]))
+    assert w.rest.still(np.zeros(2)) and not w.rest.still(np.array([0.02, 0.0]))
 
 
 def test_replay_with_faults_re_simulates_the_episode_and_the_controllers_view():

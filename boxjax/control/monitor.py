@@ -48,6 +48,7 @@ import numpy as np
 
 from boxjax import geometry
 from boxjax.config import Config, ConfigError
+from boxjax.control.state_estimate import RestWatch
 
 # Why a stop was issued; an episode that ends stopped is `safe_stop` with one of these.
 BALANCE, STALE = "balance", "stale_observation"
@@ -204,7 +205,10 @@ class Monitor:
         self.log: list[tuple[int, float, float, float]] = []
         self.would_stop: list[int] = []  # shadow mode: the steps at which it would have stopped
         self._plan: deque = deque()  # the stop's actions still to send (then rest)
-        self._sent: deque = deque(maxlen=delay + 1)  # the actions sent lately (`_still`)
+        # known at rest: nothing but rest sent over the delay and the step before it, belts at rest (so the
+        # estimate comes from a frame taken after a step of rest and is predicted over rest only: a stop
+        # resumes from a state observed at rest, not one predicted through its own carriage moves)
+        self.rest = RestWatch(delay + 1, settings.standstill_speed)
 
     def decide(self, t: int, action, errors, stop_plan, sigma: float, stale: int, belt_speed) -> np.ndarray:
         """The action to send at control step t.
@@ -218,7 +222,7 @@ class Monitor:
         """
         m, limit = self.m, self.limit
         self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))  # sigma as measured
-        still = self._still(belt_speed)
+        still = self.rest.still(belt_speed)
         delay_var = 0.0 if still else self.delay_var  # the prediction's over the delay; exact at rest
         sigma = math.sqrt(sigma**2 + delay_var)
         go_error = float(errors[0]) + m.k_sigma * sigma
@@ -251,16 +255,8 @@ class Monitor:
 
     def _send(self, a) -> np.ndarray:
         a = np.asarray(a, np.float64)
-        self._sent.append(a)
+        self.rest.sent(a)
         return a
-
-    def _still(self, belt_speed) -> bool:
-        """The gripper known at rest: its belts at rest and nothing but rest sent over the loop's delay
-        and the step before it (so the estimate comes from a frame taken after a step of rest and is
-        predicted over rest only: a stop resumes from a state observed at rest, not one predicted
-        through its own carriage moves)."""
-        rested = len(self._sent) == self._sent.maxlen and not np.any(np.asarray(self._sent))
-        return rested and bool(np.all(np.abs(np.asarray(belt_speed)) <= self.m.standstill_speed))
 
     def _stop(self, t: int, why: str, plan) -> None:
         self.mode, self.reason, self.stopped_for = STOP, why, 0

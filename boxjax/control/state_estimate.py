@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import deque
 
 import numpy as np
 
@@ -178,3 +179,20 @@ def model_delay(settings: FilterConfig, faults) -> int:
     d = sensor_latency(settings, faults) if model_compensated else 0
     a = faults.action_latency if settings.action_latency_steps is None else settings.action_latency_steps
     return d + a
+
+
+class RestWatch:
+    """Whether the gripper is known at rest: nothing but rest (all zeros) among the last `n` actions sent
+    and the belts measured at most `speed` (m/s). The pose filter's zero-velocity update and the safety
+    monitor's resume both ask it, each with its own window (`World`, `monitor.Monitor`)."""
+
+    def __init__(self, n: int, speed: float):
+        self._sent: deque = deque(maxlen=n)
+        self.speed = speed
+
+    def sent(self, action) -> None:
+        self._sent.append(np.asarray(action, np.float64))
+
+    def still(self, belt_speed) -> bool:
+        rested = len(self._sent) == self._sent.maxlen and not np.any(np.asarray(self._sent))
+        return rested and bool(np.all(np.abs(np.asarray(belt_speed)) <= self.speed))

@@ -15,13 +15,11 @@ With no faults every call is the identity and no random number is drawn: the epi
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from boxjax import massdist
 from boxjax.config import Config
-from boxjax.control.state_estimate import FilterConfig, make_filter, model_delay, sensor_latency
+from boxjax.control.state_estimate import FilterConfig, RestWatch, make_filter, model_delay, sensor_latency
 from boxjax.estimator import explore
 from boxjax.sim import faults as F
 
@@ -40,8 +38,6 @@ class World:
         self.faults = faults
         self.active = faults.any
         self.stale = 0  # steps since the last fresh frame
-        # the gripper known at rest at the last observation (`_still`): the filter's zero-velocity update
-        self.still = False
         # control steps between the newest estimate and the application of the next action, which the
         # controller bridges with its model (`planning.compensate`)
         self.delay = model_delay(pose_filter, faults)
@@ -66,7 +62,7 @@ class World:
         self.sensor = F.Sensor(faults, gen) if faults.observation else None
         self.actuator = F.Actuator(faults) if faults.action_latency else None
         self.filter = make_filter(pose_filter, faults, cfg.gripper.control_dt)
-        self._sent: deque = deque(maxlen=self.delay + 2)  # the actions sent lately (for `_still`)
+        self.rest = RestWatch(self.delay + 2, STILL_SPEED)  # for the filter's zero-velocity update
 
     def prepare(self, model) -> None:
         """Apply the plant mismatch to this box's native model (in place)."""
@@ -83,10 +79,9 @@ class World:
         if self.sensor is not None:
             s, belt_speed, _, fresh = self.sensor.observe(s, belt_speed)
         self.stale = 0 if fresh else self.stale + 1
-        self.still = self._still(belt_speed)
         measured = s
         if self.filter is not None:
-            s = self.filter.step(s, fresh, self.still)
+            s = self.filter.step(s, fresh, self.rest.still(belt_speed))
             measured = self.filter.measured()
         self.frames.append((np.asarray(measured, np.float32), np.asarray(belt_speed, np.float32), fresh))
         return np.asarray(s, np.float32), np.asarray(belt_speed, np.float32)
@@ -121,16 +116,10 @@ class World:
             return 1e-3 * self.faults.obs_noise_mm
         return 0.0
 
-    def _still(self, belt_speed) -> bool:
-        """Whether the gripper is known to be at rest: its belts measured still, and nothing but rest sent
-        over the delay since the measurement (so the box on them is at rest too)."""
-        resting = len(self._sent) == self._sent.maxlen and not np.any(self._sent)
-        return bool(resting and np.all(np.abs(np.asarray(belt_speed)) <= STILL_SPEED))
-
     def send(self, action) -> np.ndarray:
         """The action (4,) the gripper applies this step, for `action` sent now."""
         if self.active:
-            self._sent.append(np.asarray(action, np.float64))
+            self.rest.sent(action)
         return action if self.actuator is None else self.actuator.send(action)
 
     def before_step(self, t: int, model, box_body: int) -> bool:

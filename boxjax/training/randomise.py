@@ -4,8 +4,8 @@ H is trained on exploration trajectories (`boxjax.training.dataset`). Recorded f
 state they are exact, and an H trained on them reads force-gauge features at the 0.1 mm level (the
 carriage lag, `estimator.training`), so a real sensor's 3 mm of pose noise or a dropped frame moves its
 estimate anywhere: on 100 safe + 100 hazardous boxes, 3 mm / 1.5 degrees of noise made the shipped H refuse
-98 of the safe boxes, 5 % dropped frames 54 (scripts/estimator_randomisation.py,
-docs/results/faults.md).
+98 of the safe boxes, 5 % dropped frames 28 even with the dropped frames bridged
+(scripts/estimator_randomisation.py, docs/results/faults.md).
 
 `sensor_view(data, cfg, settings, seed)` replaces every box's trajectory by what the controller's
 estimator would be given through a sensor drawn for that box (`SensorRandomisation`: with probability
