@@ -152,6 +152,20 @@ def test_help_shows_the_defaults(capsys):
     assert "(default 50)" in out and "--animate" in out and "--config" in out and "--box" in out
 
 
+def test_every_command_has_help(capsys):
+    """`--help` of every subcommand formats (a '%' in a help string once broke fault-table's)."""
+    import argparse
+
+    from boxjax.cli.main import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name in sub.choices:
+        with pytest.raises(SystemExit) as e:
+            main([name, "--help"])
+        assert e.value.code == 0, name
+        assert "usage:" in capsys.readouterr().out
+
+
 def test_commands_that_compile_keep_the_compilation_cache(capsys, monkeypatch, tmp_path):
     import jax
 

@@ -80,7 +80,7 @@ def add_parsers(sub) -> None:
         nargs="+",
         choices=ROW_NAMES,
         metavar="ROW",
-        help=f"rows to run (default all: {ROW_NAMES})",
+        help="rows to run (default all: " + ", ".join(repr(r) for r in ROW_NAMES).replace("%", "%%") + ")",
     )
     option(p, "--monitor", default="both", choices=("both", "on", "off"), help="the runtime safety monitor")
     option(p, "--out", metavar="FILE.json", help="write the table here after every row; run again to resume")
