@@ -205,6 +205,10 @@ def test_no_filter_with_a_perfect_sensor_unless_asked():
     assert make_filter(FilterConfig(enabled=False), F.Faults(obs_noise_mm=3), 0.05) is None
     with pytest.raises(ConfigError, match="accel_std"):
         FilterConfig(accel_std=0.0)
+    with pytest.raises(ConfigError, match="compensation='model'"):
+        FilterConfig(motion="model", compensation="constant_velocity")
+    with pytest.raises(ConfigError, match="model_std_mm"):
+        FilterConfig(model_std_mm=0.0)
 
 
 def test_with_no_fault_the_world_is_the_identity_and_draws_nothing():
@@ -307,3 +311,89 @@ def test_a_box_at_rest_is_averaged_to_the_noise_over_the_square_root_of_the_fram
     expect = noise / np.sqrt(100)
     assert np.std(errs) == pytest.approx(expect, rel=0.15)
     assert np.mean(stds) == pytest.approx(expect, rel=0.15)
+
+
+def test_the_model_driven_filter_reaches_the_random_walk_riccati_solution():
+    """With the model's prediction as its motion, each axis's position is a random walk of the model's
+    one-step error q observed with noise r: the filter's variance converges to the scalar Riccati
+    solution P = (-q + sqrt(q^2 + 4 q r)) / 2 (after the update), and its error to that spread."""
+    dt, noise = CFG.gripper.control_dt, 3e-3
+    settings = FilterConfig(model_std_mm=1.0)
+    q, r = 1e-6, noise**2
+    p_ss = (-q + np.sqrt(q * q + 4 * q * r)) / 2
+    errs = []
+    for seed in range(100):
+        flt = make_filter(settings, F.Faults(obs_noise_mm=3.0), dt)
+        gen = np.random.default_rng(seed)
+        y = 0.0
+        for t in range(80):
+            y += 1e-3 * gen.standard_normal()  # the truth moves by the model's error
+            z = np.array([-0.1, 0.1, 0.0, y + noise * gen.standard_normal(), 0.0])
+            predicted = None if t == 0 else np.array([-0.1, 0.1, 0.0, flt.x[1, 0], 0.0])  # the model: no move
+            flt.step(z, predicted=predicted)
+        errs.append(flt.x[1, 0] - y)
+    np.testing.assert_allclose(flt.P[1, 0, 0], p_ss, rtol=1e-3)
+    np.testing.assert_allclose(np.std(errs), np.sqrt(p_ss), rtol=0.2)
+    # and a model that knows the motion (to 0.3 mm a step) gives the window smooth velocities where
+    # constant velocity cannot
+    gen = np.random.default_rng(1)
+    f = F.Faults(obs_noise_mm=3.0)
+    model_f, cv_f = make_filter(FilterConfig(model_std_mm=0.3), f, dt), make_filter(FilterConfig(), f, dt)
+    vel_err = {"model": [], "cv": []}
+    prev = {"model": None, "cv": None}
+    for t in range(300):
+        y = 0.03 * np.sin(2 * np.pi * t * dt)  # carried sideways, known to the model
+        z = np.array([-0.1, 0.1, 0.0, y + 3e-3 * gen.standard_normal(), 0.0])
+        predicted = None if t == 0 else np.array([-0.1, 0.1, 0.0, y, 0.0])
+        out = {"model": model_f.step(z, predicted=predicted), "cv": cv_f.step(z)}
+        for k, o in out.items():
+            if prev[k] is not None and t > 50:
+                v_true = 0.03 * 2 * np.pi * np.cos(2 * np.pi * (t - 0.5) * dt)
+                vel_err[k].append((o[geometry.Y] - prev[k]) / dt - v_true)
+            prev[k] = o[geometry.Y]
+    rms = {k: np.sqrt(np.mean(np.square(v))) for k, v in vel_err.items()}
+    assert rms["model"] < 0.5 * rms["cv"], rms
+
+
+def test_the_filter_is_told_the_action_that_moved_the_box_between_its_frames():
+    """`World.applied_next` aligns the model's prediction with the frames under sensor and action
+    latency: the prediction of the next frame, made from the window at the newest frame's measurement
+    time, lies within the prior's one-step error of MuJoCo's state at that time, and closer to it than to
+    the states a step before or after (an alignment off by one)."""
+    from boxjax import ControllerConfig, run_episode
+    from boxjax.control import world as world_mod
+    from boxjax.planners.sampling import SamplingOptions
+
+    faults = F.Faults(obs_noise_mm=0.1, obs_noise_deg=0.05, obs_latency=2, action_latency=1)
+    truth: list = []  # MuJoCo's states, one per observation
+    pairs: list = []  # (the model's prediction of a frame, the index of that frame's observation)
+    expect, observe = world_mod.World.expect, world_mod.World.observe
+
+    def spy_expect(self, predicted):
+        pairs.append([np.asarray(predicted, np.float64), None])
+        return expect(self, predicted)
+
+    def spy_observe(self, s, b):
+        truth.append(np.asarray(s, np.float64))
+        if pairs and pairs[-1][1] is None:
+            pairs[-1][1] = len(truth) - 1
+        return observe(self, s, b)
+
+    ctrl = ControllerConfig(
+        sampling=SamplingOptions(gradient_steps=0), pose_filter=FilterConfig(motion="model")
+    )
+    world_mod.World.expect, world_mod.World.observe = spy_expect, spy_observe
+    try:
+        run_episode(CFG, massdist.named("A", CFG.box), jax.random.PRNGKey(3), ctrl=ctrl, max_steps=120,
+                    faults=faults)  # fmt: skip
+    finally:
+        world_mod.World.expect, world_mod.World.observe = expect, observe
+    assert len(pairs) > 40
+    xy = [geometry.X, geometry.Y]
+
+    def err(shift):  # observation i shows the true state of observation i - latency
+        i0 = faults.obs_latency - shift
+        return np.median([np.linalg.norm(p[xy] - truth[i - i0][xy]) for p, i in pairs[5:-2]])
+
+    assert err(0) < 1.5e-3, err(0)
+    assert err(0) < 0.7 * min(err(-1), err(1)), (err(-1), err(0), err(1))

@@ -102,6 +102,12 @@ def _batched_compensate():
     return jax.jit(jax.vmap(planning.compensate))
 
 
+@lru_cache(maxsize=1)
+def _batched_predict_first():
+    """`planning.predict_first` vmapped over boxes and jitted (the filters' predictions of the next frame)."""
+    return jax.jit(jax.vmap(planning.predict_first))
+
+
 @lru_cache(maxsize=8)
 def batched_planner(cfg: Config, ctrl: ControllerConfig):
     """(init, optimize) of the planner `ctrl` names, vmapped over boxes and jitted (cached per config)."""
@@ -356,6 +362,7 @@ def run_episodes(
         width = -(-min(slots, len(queue)) // n_dev) * n_dev  # a multiple of the devices: equal shards
         windows = {b: controller.first_window(np.stack([s for s, _ in rec[b].seen])) for b in queue}
         compensate_b = _batched_compensate()
+        predict_b = _batched_predict_first()
 
         def observations(boxes_: list[int], model_b=None) -> planning.Observation:
             """The planner's observations of these boxes, stacked (one host -> device copy per field),
@@ -431,6 +438,17 @@ def run_episodes(
                 full[b], active[b] = r.send(sim, b, a), True
                 r.plan_ms.append(ms)
                 r.mpc_steps += 1
+            if rec[live[0]].world.model_motion:  # the filters' predictions of the next frame, one call
+                use = [b if b is not None else live[0] for b in slot_box]
+                w = np.stack(
+                    [planning.check_window(np.asarray(windows[b][-planning.MIN_WINDOW :])) for b in use]
+                )
+                belt = np.stack([rec[b].seen[-1][1] for b in use]).astype(np.float32)
+                nxt = np.stack([rec[b].world.applied_next(rec[b].sent) for b in use])
+                expected = np.asarray(predict_b(model_b, put(w), put(belt), put(nxt)))
+                for k, b in enumerate(slot_box):
+                    if b is not None:
+                        rec[b].world.expect(expected[k])
             sim.step(full, active)
             for k, b in enumerate(slot_box):
                 if b is None:

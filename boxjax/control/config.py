@@ -51,6 +51,11 @@ class ControllerConfig:
     # plans over a mixture of priors (`planning.Mixture`: one particle per setting, scored by
     # `SamplingOptions.particle_risk`; the sampling planner and belief="mean" only).
     prior_params: Any = None
+    # Robust planning over the belt friction (issue: the world's friction is not the model's): the belt
+    # friction coefficients the planner plans over, one physics prior per value in a `planning.Mixture`,
+    # each candidate scored over them by `SamplingOptions.particle_risk` (mean, mean + k std, worst).
+    # None: the prior with the gripper's friction. The sampling planner, belief="mean", one prior setting.
+    friction_set: tuple | None = None
     # A learned residual on the physics prior (`boxjax.prior.residual`): the path of its checkpoint, or None
     # (the prior alone). The "slip" prior with belief="mean" and one prior setting only.
     residual: str | None = None
@@ -97,6 +102,23 @@ class ControllerConfig:
                     "sampling planner and belief='mean'"
                 )
 
+        if self.friction_set is not None:
+            fs = self.friction_set
+            if not (
+                isinstance(fs, tuple)
+                and len(fs) >= 2
+                and all(isinstance(m, int | float) and 0 < m < 5 for m in fs)
+            ):
+                raise ValueError(
+                    f"friction_set must be a tuple of at least two friction coefficients > 0, got {fs!r}"
+                )
+            if self.planner != "sampling" or self.belief != "mean" or isinstance(self.prior_params, tuple):
+                raise ValueError(
+                    "planning over a friction set needs the sampling planner, belief='mean' and one "
+                    "prior setting"
+                )
+            if self.residual is not None:
+                raise ValueError("a friction set and a learned residual cannot be combined")
         if self.residual is not None:
             settings = self.prior_settings()
             if (

@@ -301,6 +301,10 @@ def run_episode(
                 )
             if ctrl.observer_gain > 0:
                 predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)
+            if world.model_motion:  # the filter's prediction of the next frame, with this model
+                w_meas = planning.check_window(np.asarray(window[-planning.MIN_WINDOW :]))
+                b_meas = np.asarray(seen[-1][1], np.float32)
+                world.expect(planning.predict_first(model, w_meas, b_meas, world.applied_next([*sent, a])))
             state = act(state, a)
             window.append(np.asarray(seen[-1][0]))
             if ctrl.observer_gain > 0 and not bool(state.done):

@@ -18,8 +18,9 @@ def planning_model(
 ):
     """The model the planners plan with: the physics prior (`ctrl.variant`) on the belief, or with
     `ctrl.belief == "ensemble"` a `planning.Ensemble` of one prior per member of the estimate
-    (`est["members"]`, the learned H's ensemble), or with a tuple of `ctrl.prior_params` a
-    `planning.Mixture` of one prior per setting on the belief."""
+    (`est["members"]`, the learned H's ensemble), with a tuple of `ctrl.prior_params` a
+    `planning.Mixture` of one prior per setting on the belief, or with `ctrl.friction_set` a
+    `planning.Mixture` of one prior per belt friction coefficient."""
     if ctrl.variant == "paper" and force_map is None:
         force_map = default_force_map(cfg)
 
@@ -31,6 +32,12 @@ def planning_model(
     if isinstance(settings, tuple):  # the per-box quantities do not depend on the settings: built once
         base = on(belief, settings[0])
         return planning.Mixture(tuple(dataclasses.replace(base, params=p) for p in settings))
+    if ctrl.friction_set is not None:  # robust planning: one prior per belt friction, built once
+        base = on(belief, settings)
+        return planning.Mixture(
+            tuple(dataclasses.replace(base, gripper=dataclasses.replace(base.gripper, friction=float(mu)))
+                  for mu in ctrl.friction_set)
+        )  # fmt: skip
     if ctrl.belief == "mean":
         if ctrl.residual is not None:
             net, rcfg, _ = residual.load_cached(ctrl.residual)

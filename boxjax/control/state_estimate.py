@@ -3,11 +3,24 @@
 A robot's vision pipeline gives the box pose late (`latency_steps` control steps), with noise, and now and
 then not at all (a held frame). The planner's prior takes velocities and the pre-action acceleration from
 finite differences of its last three states, so raw noisy poses would turn 3 mm of noise into ~6 cm/s of
-velocity noise. `PoseFilter` is the standard answer: one constant-velocity Kalman filter per planar
-coordinate (x, y, yaw; white-acceleration process noise), run at the time of the measurements, updated
-when a fresh frame arrives and only predicted when a frame is held, its output predicted forward over the
-known latency (constant velocity) to the present. The carriage positions P1, P2 come from the drives'
-encoders and are passed through as received.
+velocity noise. `PoseFilter` is the standard answer: a Kalman filter per planar coordinate (x, y, yaw),
+run at the time of the measurements, updated when a fresh frame arrives and only predicted when a frame
+is held. How it predicts from one frame to the next (`FilterConfig.motion`):
+
+* "constant_velocity" (default, and always during the exploration, whose model is not known yet): a
+  constant-velocity filter with white-acceleration process noise (`accel_std`, `yaw_accel_std`);
+* "model" (once the controller has a model: after the exploration): the model in the planner's
+  slot predicts the pose at the next frame from the estimate's window and the action the gripper applied
+  in between (`World.expect`), as a robot's estimator uses its dynamics model (MuJoCo MPC's Kalman filter
+  steps the MuJoCo model). The belts' and carriages' commanded motion is known, so between frames only the
+  model's one-step error is uncertain (`model_std_mm`, `model_std_deg`), not a white acceleration that
+  must allow for every belt command. Measured, it does not pay with the physics prior: its one-step error
+  in closed loop (1.4 mm) is not far enough below a 3 mm sensor's, and under a friction mismatch the
+  model's bias enters the estimate (docs/results/faults.md#the-filters-motion-model).
+
+Its output, with model compensation, is the state at the newest frame's measurement time, which the
+controller predicts forward over the known latency with its model (`planning.compensate`). The carriage
+positions P1, P2 come from the drives' encoders and are passed through as received.
 
 `FilterConfig` holds its settings; `measurement_noise(cfg, faults)` gives the noise it assumes when told
 the sensor's specification. With a perfect sensor the filter is not used at all (`enabled`): the
@@ -27,6 +40,7 @@ from boxjax.config import ConfigError
 
 _AXES = (geometry.X, geometry.Y, geometry.YAW)
 COMPENSATIONS = ("model", "constant_velocity")
+MOTIONS = ("model", "constant_velocity")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,12 +70,33 @@ class FilterConfig:
     # filter extrapolates its own velocity estimate over the sensor's latency (no model; the exploration
     # always uses it).
     compensation: str = "model"
+    # How the filter predicts between frames (module docstring): "constant_velocity" (default) or "model"
+    # (constant velocity until the controller has a model; needs model compensation). Measured no better:
+    # docs/results/faults.md#the-filters-motion-model.
+    motion: str = "constant_velocity"
+    # The model's one-step prediction error (std per axis, per control step), the filter's process noise
+    # with motion="model": the physics prior on the true box in closed loop errs by 1.41 mm median / 3.05
+    # mm p90 in position and 0.19 / 0.68 degrees in yaw one step ahead
+    # (benchmarks/results_closed_loop_error.json).
+    model_std_mm: float = 1.5
+    model_std_deg: float = 0.4
 
     def __post_init__(self):
         for name in ("accel_std", "yaw_accel_std"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"filter: {name}={v!r} must be a positive number")
+        for name in ("model_std_mm", "model_std_deg"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"filter: {name}={v!r} must be a positive number")
+        if self.motion not in MOTIONS:
+            raise ConfigError(f"filter: motion={self.motion!r}; choose one of {MOTIONS}")
+        if self.motion == "model" and self.compensation != "model":
+            raise ConfigError(
+                "filter: motion='model' runs the filter at the frames' measurement times, which needs "
+                "compensation='model'; choose motion='constant_velocity' with constant-velocity compensation"
+            )
         for name in ("noise_mm", "noise_deg"):
             v = getattr(self, name)
             if v is not None and not (math.isfinite(v) and v > 0):
@@ -75,13 +110,15 @@ class FilterConfig:
 
 
 class PoseFilter:
-    """Constant-velocity Kalman filters on (x, y, yaw) of one box (numpy, host-side, per control step).
+    """Kalman filters on (x, y, yaw) of one box (numpy, host-side, per control step).
 
-    step(s_obs (5,), fresh, still) -> (5,) the estimated present planar state. `fresh` says whether s_obs
-    is a new measurement (False: the sensor held its last frame; the filter only predicts); `still` that
-    the gripper is known to be at rest (its belts measured still, nothing commanded since the
+    step(s_obs (5,), fresh, still, predicted) -> (5,) the estimated present planar state. `fresh` says
+    whether s_obs is a new measurement (False: the sensor held its last frame; the filter only predicts);
+    `still` that the gripper is known to be at rest (its belts measured still, nothing commanded since the
     measurement): the box's velocity is then zero (a zero-velocity update, as inertial navigation makes
     at standstill), so a stopped box's estimate averages frames instead of chasing their noise.
+    `predicted`: (5,) the model's prediction of the state at this frame's measurement time (the module
+    docstring's "model" motion), or None: constant velocity.
     """
 
     def __init__(self, dt: float, noise: tuple[float, float], settings: FilterConfig, latency: int):
@@ -91,21 +128,30 @@ class PoseFilter:
         g = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
         self.Q = np.stack([q_xy * g, q_xy * g, q_yaw * g])  # (3 axes, 2, 2)
         self.R = np.array([noise[0] ** 2, noise[0] ** 2, noise[1] ** 2])
+        mm, rad = 1e-3 * settings.model_std_mm, math.radians(settings.model_std_deg)
+        self.q_model = np.array([mm**2, mm**2, rad**2])  # the model's one-step error, per axis
         self.F = np.array([[1.0, dt], [0.0, 1.0]])
         self.x: np.ndarray | None = None  # (3 axes, 2): position, velocity at measurement time
         self.P: np.ndarray | None = None  # (3, 2, 2)
         self.p_carriages = np.zeros(2)
 
-    def step(self, s_obs, fresh: bool = True, still: bool = False) -> np.ndarray:
+    def step(self, s_obs, fresh: bool = True, still: bool = False, predicted=None) -> np.ndarray:
         z = np.asarray(s_obs, np.float64)[list(_AXES)]
         self.p_carriages = np.asarray(s_obs, np.float64)[[geometry.P1, geometry.P2]]
         if self.x is None:  # the first frame: at rest where it is seen
             self.x = np.stack([z, np.zeros(3)], axis=1)
             self.P = np.stack([np.diag([r, 0.01]) for r in self.R])
             return self.output()
-        self.x = self.x @ self.F.T
-        # at rest nothing moves the box: no process noise, so frames of a box at rest are averaged
-        self.P = self.F @ self.P @ self.F.T + (0.0 if still else self.Q)
+        if predicted is not None and not still:  # the model's motion: only its one-step error is uncertain
+            before = self.x[:, 0].copy()
+            self.x[:, 0] = np.asarray(predicted, np.float64)[list(_AXES)]
+            self.x[:, 1] = (self.x[:, 0] - before) / self.dt
+            self.P[:, 0, 0] += self.q_model
+            self.P[:, 0, 1] = self.P[:, 1, 0] = 0.0  # the velocity is the model's, not the filter's state
+        else:
+            self.x = self.x @ self.F.T
+            # at rest nothing moves the box: no process noise, so frames of a box at rest are averaged
+            self.P = self.F @ self.P @ self.F.T + (0.0 if still else self.Q)
         if fresh:
             innov = z - self.x[:, 0]
             innov[2] = (innov[2] + np.pi) % (2 * np.pi) - np.pi  # yaw: the nearest turn
@@ -160,6 +206,11 @@ def filtered(settings: FilterConfig, faults) -> bool:
 
 def sensor_latency(settings: FilterConfig, faults) -> int:
     return faults.obs_latency if settings.latency_steps is None else settings.latency_steps
+
+
+def model_motion(settings: FilterConfig, faults) -> bool:
+    """Whether the controller's filter of this sensor predicts between frames with its model."""
+    return filtered(settings, faults) and settings.motion == "model"
 
 
 def make_filter(settings: FilterConfig, faults, dt: float) -> PoseFilter | None:

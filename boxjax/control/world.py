@@ -7,6 +7,8 @@ the batched `run_episodes`:
     world = World(cfg, faults, ctrl.pose_filter, key, truth)
     world.prepare(model)                 # the simulator's model of this box: friction, servo gains
     s_hat, b_hat = world.observe(s, b)   # after every step (and the reset): what the controller believes
+    if world.model_motion:               # the model's prediction of the next frame, for the filter
+        world.expect(model.rollout_sequence(window, b_hat, world.applied_next(sent)[None])[0])
     applied = world.send(action)         # what the gripper applies this step (action latency)
     world.before_step(t, model, body)    # the mass slides at its step
 
@@ -19,7 +21,14 @@ import numpy as np
 
 from boxjax import massdist
 from boxjax.config import Config
-from boxjax.control.state_estimate import FilterConfig, RestWatch, make_filter, model_delay, sensor_latency
+from boxjax.control.state_estimate import (
+    FilterConfig,
+    RestWatch,
+    make_filter,
+    model_delay,
+    model_motion,
+    sensor_latency,
+)
 from boxjax.estimator import explore
 from boxjax.sim import faults as F
 
@@ -54,6 +63,9 @@ class World:
         # per observation: the pose at its frame's measurement time (the filter's, or the raw frame's), the
         # belt speeds and whether the frame was fresh: what the estimator is given (`for_estimator`)
         self.frames: list[tuple[np.ndarray, np.ndarray, bool]] = []
+        # the filter predicts between frames with the controller's model (`FilterConfig.motion`)
+        self.model_motion = self.active and model_motion(pose_filter, faults)
+        self._expected = None  # the model's prediction of the next frame (`expect`)
         if not self.active:
             self.sensor = self.actuator = self.filter = self.shift = None
             return
@@ -81,10 +93,23 @@ class World:
         self.stale = 0 if fresh else self.stale + 1
         measured = s
         if self.filter is not None:
-            s = self.filter.step(s, fresh, self.rest.still(belt_speed))
+            s = self.filter.step(s, fresh, self.rest.still(belt_speed), self._expected)
+            self._expected = None
             measured = self.filter.measured()
         self.frames.append((np.asarray(measured, np.float32), np.asarray(belt_speed, np.float32), fresh))
         return np.asarray(s, np.float32), np.asarray(belt_speed, np.float32)
+
+    def applied_next(self, sent) -> np.ndarray:
+        """(4,) the action that moves the box from the newest frame's measurement time to the next frame's:
+        the one the gripper applies at that time, sent `delay` steps before it (`sent`: the actions sent so
+        far, the one just decided included; zeros before the first)."""
+        k = self.delay + 1
+        return np.asarray(sent[-k], np.float32) if len(sent) >= k else np.zeros(4, np.float32)
+
+    def expect(self, predicted) -> None:
+        """The model's prediction (5,) of the state at the next frame's measurement time, from the
+        estimate's window and `applied_next`: the filter's prediction for that frame (`model_motion`)."""
+        self._expected = np.asarray(predicted, np.float64)
 
     def for_estimator(self, data: dict, n_steps: int) -> dict:
         """The exploration as the estimator takes it, from the controller's record `data` (states and belt
