@@ -166,6 +166,11 @@ class DriftCorrected:
     def stability_margin(self, s) -> jax.Array:
         return self.model.stability_margin(s)
 
+    @property
+    def gripper(self):
+        """The gripper the corrected model was built for (its belts' kinematics: `next_belt_speed`)."""
+        return self.model.gripper
+
     def planar_com(self) -> jax.Array | None:
         return planar_com(self.model)
 
@@ -277,6 +282,11 @@ class Ensemble:
         return _leading(self.members)
 
     @property
+    def gripper(self):
+        """The gripper the members were built for (static, one for all: `next_belt_speed`)."""
+        return self.members.gripper
+
+    @property
     def n_particles(self) -> int:
         return self.n_members * int(self.particles_per_member)
 
@@ -335,6 +345,12 @@ class Mixture:
     @property
     def n_particles(self) -> int:
         return len(self.members)
+
+    @property
+    def gripper(self):
+        """The first member's gripper: the belts' kinematics (`next_belt_speed`), which members that
+        differ in their settings or friction (`ControllerConfig.friction_set`) share."""
+        return self.members[0].gripper
 
     def rollout_particles(self, key, window, belt_speed, actions) -> jax.Array:
         """(M, H, 5): member m's own rollout (`key` unused: the members are deterministic)."""
