@@ -245,6 +245,9 @@ def test_controller_settings_round_trip():
     tuned = ControllerConfig(prior_params=prior.PriorParams(carriage_omega=30.0, slip_eps=0.02))
     st = json.loads(json.dumps(experiments.settings("oracle", tuned, 1, "gaussian")))
     assert experiments.controller_from_settings(st) == tuned
+    robust = ControllerConfig(friction_set=(0.35, 0.5, 0.65))
+    st = json.loads(json.dumps(experiments.settings("oracle", robust, 1, "gaussian")))
+    assert experiments.controller_from_settings(st) == robust
 
 
 def test_the_controllers_prior_settings_reach_the_planners_model():

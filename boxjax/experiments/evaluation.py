@@ -407,6 +407,8 @@ def controller_from_settings(st: dict) -> ControllerConfig:
         c["pose_filter"] = FilterConfig(**c["pose_filter"])
     # evaluations written before the runtime safety monitor ran without one
     c["monitor"] = MonitorConfig(**c["monitor"]) if isinstance(c.get("monitor"), dict) else monitor.OFF
+    if isinstance(c.get("friction_set"), list):  # JSON keeps the tuple as a list
+        c["friction_set"] = tuple(c["friction_set"])
     pp = c.get("prior_params")
     if isinstance(pp, list | tuple):  # a mixture of priors
         c["prior_params"] = tuple(prior.PriorParams(**p) for p in pp)
