@@ -19,10 +19,7 @@ A stop is a state, not an end:
   belts at rest, |belt speed| <= `standstill_speed`, and nothing but rest sent over the loop's delay, so
   the estimate is observed, not predicted through the stop's own carriage moves) and the planner's next
   step and stop are predicted within `resume_below` (hysteresis: below `stop_at`), the turn resumes.
-  An episode that resumes and finishes is a success. A box at rest off-centre (between the two
-  thresholds, where no action's check can pass: each starts from the present error) is re-centred: the
-  stop's carriage moves again, from the state observed at rest, when predicted to end `recentre_gain`
-  more centred; then rest, observed, and the check again.
+  An episode that resumes and finishes is a success.
 * The `max_stops`-th balance stop is final, as is a stop that cannot resume within `stop_timeout`
   control steps: the gripper comes to rest, the episode ends `safe_stop` with its reason, kept apart
   from failures (`REASONS`).
@@ -90,10 +87,6 @@ class MonitorConfig:
     # development box 7.4 cm for 12 cm of carriage travel and its balance error grew from 2.0 to 3.1 cm
     # while stopped (docs/results/faults.md).
     backup: str = "best"
-    # A balance stop at rest, off-centre, re-centres the carriages under the box (the stop's plan again,
-    # from the state observed at rest) when that is predicted to end at least this much (a fraction of
-    # the limit) more centred: 0.05 = 2 mm, well above the noise of a prediction at rest. None: never.
-    recentre_gain: float | None = 0.05
 
     def __post_init__(self):
         def bad(name, why):
@@ -116,10 +109,6 @@ class MonitorConfig:
                 bad(name, "must be a whole number >= 1")
         if not self.standstill_speed > 0:
             bad("standstill_speed", "must be a positive speed (m/s)")
-        if self.recentre_gain is not None and not (
-            math.isfinite(self.recentre_gain) and 0 < self.recentre_gain < 1
-        ):
-            bad("recentre_gain", "must be a fraction of the balance limit in (0, 1) or None")
         if self.backup not in BACKUP_CHOICES:
             bad("backup", f"must be one of {BACKUP_CHOICES}")
 
@@ -133,26 +122,20 @@ OFF = MonitorConfig(enabled=False)
 
 def backup_actions(cfg: Config, s, n: int, recentre: bool = True) -> jax.Array:
     """(n, 4) a controlled stop from the planar state s (5,): belt speeds 0 (the drives decelerate at
-    their limit) and, with `recentre`, the carriages moved so that the midpoint between the belts comes
-    under the box's centre, each at most `max_position_step` per step and within its range: together
-    (the belts' gap kept) where the ranges allow, and where one carriage is at (or would pass) its end
-    stop, the other moves for both (the gap narrows or widens: with the belts spread to their stops,
-    the midpoint can still come under a box off-centre). Without `recentre` the carriages hold."""
+    their limit) and, with `recentre`, both carriages moved together toward the box's centre, at most
+    `max_position_step` per step and within their ranges, so that the midpoint between the belts comes
+    under the box (without: the carriages hold)."""
     g = cfg.gripper
-    p1, p2, y = s[geometry.P1], s[geometry.P2], s[geometry.Y]
-    (lo1, hi1), (lo2, hi2) = g.p1_range, g.p2_range
-    half_gap = 0.5 * (p2 - p1)
-    t1, t2 = y - half_gap, y + half_gap  # together, the gap kept
-    t1, t2 = jnp.where(t2 > hi2, 2 * y - hi2, t1), jnp.minimum(t2, hi2)  # belt 2 at its outer end
-    t1, t2 = jnp.maximum(t1, lo1), jnp.where(t1 < lo1, 2 * y - lo1, t2)  # belt 1 at its outer end
-    t1, t2 = jnp.clip(t1, lo1, hi1), jnp.clip(t2, lo2, hi2)  # inner ends: as close as the ranges allow
+    offset = s[geometry.Y] - 0.5 * (s[geometry.P1] + s[geometry.P2])
     reach = g.max_position_step * jnp.arange(1, n + 1)
+    moved = jnp.clip(offset, -reach, reach) * recentre  # (n,) cumulative move of the midpoint
 
-    def carriage(p, target):  # cumulative moves toward the target at the rate limit, as steps
-        c = jnp.clip(target - p, -reach, reach) * recentre
+    def carriage(p, lo, hi):
+        c = jnp.clip(p + moved, lo, hi) - p
         return jnp.diff(c, prepend=0.0)
 
-    d1, d2 = carriage(p1, t1), carriage(p2, t2)
+    d1 = carriage(s[geometry.P1], *g.p1_range)
+    d2 = carriage(s[geometry.P2], *g.p2_range)
     return jnp.stack([jnp.zeros(n), jnp.zeros(n), d1, d2], axis=1).astype(jnp.float32)
 
 
@@ -163,19 +146,13 @@ def backup_set(cfg: Config, s, n: int, backup: str = "best") -> jax.Array:
     return jnp.stack([backup_actions(cfg, s, n, recentre=name == "recentre") for name in names])
 
 
-# Stops predicted within this much (m) of the safest are equally safe; of those the one predicted to end
-# the most centred is issued (at rest, where holding and re-centring are both as safe as the box is now).
-SAFE_TIE = 1e-3
-
-
 def predicted_errors(
     cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best"
 ) -> tuple[jax.Array, jax.Array]:
-    """((3,) m, (horizon, 4)): the largest balance error, now (the window's newest state) and over
+    """((2,) m, (horizon, 4)): the largest balance error, now (the window's newest state) and over
     `horizon` predicted steps, of (a) `action` followed by a stop and (b) a stop at once, each with the
-    stop of `backup_set` predicted safest; (c) the balance error at the end of the stop issued now; and
-    that stop's plan (the one a stop issued now follows: `Monitor`): of the stops predicted within
-    `SAFE_TIE` of the safest, the one that ends the most centred."""
+    stop of `backup_set` predicted safest; and the stop predicted safest at once (the plan a stop issued
+    now follows: `Monitor`)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
@@ -184,17 +161,13 @@ def predicted_errors(
     errors = jax.vmap(jax.vmap(geometry.balance_error))(states)
     errors = jnp.where(jnp.isfinite(errors), errors, jnp.inf)  # a model that diverges is not believed safe
     worst = jnp.max(errors, axis=1).reshape(2, -1)  # (go | stop, V)
-    end = errors[-worst.shape[1] :, -1]  # (V,) each stop's error at its end
     now = geometry.balance_error(window[-1])
-    safe = worst[1] <= jnp.min(worst[1]) + SAFE_TIE
-    chosen = jnp.argmin(jnp.where(safe, end, jnp.inf))
-    worst_of = jnp.maximum(jnp.stack([jnp.min(worst[0]), jnp.min(worst[1])]), now)
-    return jnp.concatenate([worst_of, end[chosen][None]]), backups[chosen]
+    return jnp.maximum(jnp.min(worst, axis=1), now), backups[jnp.argmin(worst[1])]
 
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
 def check(cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best"):
-    """Jitted `predicted_errors`: ((3,) go, stop and the stop's end errors, (horizon, 4) its plan)."""
+    """Jitted `predicted_errors`: ((2,) go and stop errors, (horizon, 4) the safest stop's plan)."""
     return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup)
 
 
@@ -223,7 +196,6 @@ class Monitor:
         self.mode, self.reason = RUN, None
         self.stops: list[tuple[int, str]] = []  # (control step, reason) of every stop issued
         self.resumes: list[int] = []
-        self.recentres: list[int] = []  # control steps at which a stop at rest re-centred the carriages
         self.balance_stops = 0
         self.stopped_for = 0
         self.final = False
@@ -242,8 +214,7 @@ class Monitor:
         """The action to send at control step t.
 
         Args:
-          action: the planner's (4,). errors: (3,) `predicted_errors` (go, stop, the stop's end; the
-          first two suffice without re-centring at rest). stop_plan: (n, 4) the
+          action: the planner's (4,). errors: (2,) `predicted_errors` (go, stop). stop_plan: (n, 4) the
           stop predicted safest from now (`predicted_errors`): a stop issued now sends it, then rest.
           sigma: the std of the estimate's y at its measurement (m; the prediction's over the delay is
           added, `delay_std`, unless the gripper is known at rest); stale: control steps since the
@@ -275,31 +246,12 @@ class Monitor:
                     self.resumes.append(t)
                 elif self.stopped_for >= m.stop_timeout:
                     self.final = True
-                elif self._recentre_now(still, errors):  # at rest, off-centre: bring the belts under it
-                    self._plan = deque(np.asarray(stop_plan, np.float64).reshape(-1, 4))
-                    self.recentres.append(t)
             if self.final and still and self.stopped_for >= 2:
                 self.ended = True
         if self.mode == RUN:
             return self._send(action)
         self.stopping_steps.add(t)
         return self._send(self._plan.popleft() if self._plan else np.zeros(4))
-
-    def _recentre_now(self, still: bool, errors) -> bool:
-        """Whether a balance stop at rest re-centres: its plan sent, the gripper known at rest, and the
-        stop predicted from here (the carriages moved under the box, `predicted_errors`) to end at least
-        `recentre_gain` of the limit more centred than the box is (a box that came to rest between the
-        resume and stop thresholds could otherwise never resume: every action's check starts from its
-        present error)."""
-        if (
-            self.m.recentre_gain is None
-            or self.reason != BALANCE
-            or self._plan
-            or not still
-            or len(errors) < 3
-        ):
-            return False
-        return float(errors[2]) <= float(errors[1]) - self.m.recentre_gain * self.limit
 
     def _send(self, a) -> np.ndarray:
         a = np.asarray(a, np.float64)
@@ -325,7 +277,6 @@ class Monitor:
             "monitor_stop_steps": [t for t, _ in self.stops],
             "monitor_stop_reasons": [r for _, r in self.stops],
             "monitor_resumes": len(self.resumes),
-            "monitor_recentres": len(self.recentres),
             **({"monitor_would_stop": self.would_stop} if self.m.shadow else {}),
         }
 
