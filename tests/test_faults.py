@@ -397,3 +397,50 @@ def test_the_filter_is_told_the_action_that_moved_the_box_between_its_frames():
 
     assert err(0) < 1.5e-3, err(0)
     assert err(0) < 0.7 * min(err(-1), err(1)), (err(-1), err(0), err(1))
+
+
+def test_the_state_window_gives_the_planner_the_filters_velocity_not_differences_of_noisy_frames():
+    """`FilterConfig(window="state")`: the planner's window is the line through the newest estimate along
+    the filter's velocity, so the velocity the prior takes from it (the last difference) is the filter's
+    estimate, steadier than the difference of two noisy estimates; the carriages stay as measured, and a
+    perfect sensor's window is untouched."""
+    v = np.array([0.05, -0.02])  # m/s in x, y
+    f = F.Faults(obs_noise_mm=3.0, obs_noise_deg=1.5)
+    dt = CFG.gripper.control_dt
+    errs = {"frames": [], "state": []}
+    for kind in errs:
+        world = World(CFG, f, FilterConfig(window=kind), jax.random.PRNGKey(5), massdist.named("A", CFG.box))
+        seen = []
+        for t in range(300):
+            truth = np.array([-0.1 + 1e-4 * t, 0.1, v[0] * dt * t, v[1] * dt * t, 0.0])
+            seen.append(world.observe(truth, np.zeros(2))[0])
+            if t > 50:
+                w = world.planner_window(seen[-3:])
+                errs[kind].append(
+                    (w[-1, [geometry.X, geometry.Y]] - w[-2, [geometry.X, geometry.Y]]) / dt - v
+                )
+                np.testing.assert_allclose(w[:, geometry.P1], [s[geometry.P1] for s in seen[-3:]], atol=1e-7)
+                np.testing.assert_allclose(w[-1], seen[-1], atol=1e-6)  # the newest estimate itself
+    rms = {k: float(np.sqrt(np.mean(np.square(e)))) for k, e in errs.items()}
+    assert rms["state"] < 0.7 * rms["frames"], rms
+    perfect = World(
+        CFG, F.NONE, FilterConfig(window="state"), jax.random.PRNGKey(0), massdist.named("A", CFG.box)
+    )
+    frames = [np.arange(5, dtype=np.float32) + k for k in range(3)]
+    np.testing.assert_array_equal(perfect.planner_window(frames), np.stack(frames))
+
+
+def test_by_default_the_state_window_is_used_for_a_noisy_sensor_only():
+    box, key = massdist.named("A", CFG.box), jax.random.PRNGKey(0)
+    for faults, expected in (
+        (F.Faults(obs_noise_mm=1.0), True),
+        (F.Faults(obs_noise_deg=0.5), True),
+        (F.Faults(obs_latency=2), False),  # exact frames, late: their differences carry the acceleration
+        (F.Faults(friction=0.4), False),
+        (F.NONE, False),
+    ):
+        assert World(CFG, faults, FilterConfig(), key, box).state_window is expected, faults
+    assert World(CFG, F.Faults(obs_latency=2), FilterConfig(window="state"), key, box).state_window
+    assert not World(CFG, F.Faults(obs_noise_mm=3), FilterConfig(window="frames"), key, box).state_window
+    with pytest.raises(ConfigError, match="window"):
+        FilterConfig(window="line")

@@ -368,7 +368,10 @@ def run_episodes(
             """The planner's observations of these boxes, stacked (one host -> device copy per field),
             predicted over the loop's delays with each box's model (`planning.compensate`)."""
             w = np.stack(
-                [planning.check_window(np.asarray(windows[b][-planning.MIN_WINDOW :])) for b in boxes_]
+                [
+                    planning.check_window(rec[b].world.planner_window(windows[b][-planning.MIN_WINDOW :]))
+                    for b in boxes_
+                ]
             )
             belt = np.stack([rec[b].seen[-1][1] for b in boxes_]).astype(np.float32)
             if delay and model_b is not None:
@@ -441,7 +444,10 @@ def run_episodes(
             if rec[live[0]].world.model_motion:  # the filters' predictions of the next frame, one call
                 use = [b if b is not None else live[0] for b in slot_box]
                 w = np.stack(
-                    [planning.check_window(np.asarray(windows[b][-planning.MIN_WINDOW :])) for b in use]
+                    [
+                        planning.check_window(rec[b].world.planner_window(windows[b][-planning.MIN_WINDOW :]))
+                        for b in use
+                    ]
                 )
                 belt = np.stack([rec[b].seen[-1][1] for b in use]).astype(np.float32)
                 nxt = np.stack([rec[b].world.applied_next(rec[b].sent) for b in use])

@@ -253,7 +253,7 @@ def run_episode(
         window = first_window(exploration["s"])
 
         def observe(state):
-            w = planning.check_window(np.asarray(window[-planning.MIN_WINDOW :]))
+            w = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
             b = np.asarray(seen[-1][1], np.float32)
             if world.delay:  # predicted over the loop's delays to when the next action applies
                 w, b = _compensate(model, w, b, in_flight(sent, world.delay))
@@ -302,7 +302,7 @@ def run_episode(
             if ctrl.observer_gain > 0:
                 predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)
             if world.model_motion:  # the filter's prediction of the next frame, with this model
-                w_meas = planning.check_window(np.asarray(window[-planning.MIN_WINDOW :]))
+                w_meas = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
                 b_meas = np.asarray(seen[-1][1], np.float32)
                 world.expect(planning.predict_first(model, w_meas, b_meas, world.applied_next([*sent, a])))
             state = act(state, a)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from boxjax import massdist
+from boxjax import geometry, massdist
 from boxjax.config import Config
 from boxjax.control.state_estimate import (
     FilterConfig,
@@ -28,6 +28,7 @@ from boxjax.control.state_estimate import (
     model_delay,
     model_motion,
     sensor_latency,
+    state_window,
 )
 from boxjax.estimator import explore
 from boxjax.sim import faults as F
@@ -66,6 +67,7 @@ class World:
         # the filter predicts between frames with the controller's model (`FilterConfig.motion`)
         self.model_motion = self.active and model_motion(pose_filter, faults)
         self._expected = None  # the model's prediction of the next frame (`expect`)
+        self.state_window = self.active and state_window(pose_filter, faults)
         if not self.active:
             self.sensor = self.actuator = self.filter = self.shift = None
             return
@@ -98,6 +100,19 @@ class World:
             measured = self.filter.measured()
         self.frames.append((np.asarray(measured, np.float32), np.asarray(belt_speed, np.float32), fresh))
         return np.asarray(s, np.float32), np.asarray(belt_speed, np.float32)
+
+    def planner_window(self, window) -> np.ndarray:
+        """(W, 5) float32 the window the planner and the monitor predict from, given the window of the
+        controller's estimates (the newest last): as it is, or with `FilterConfig.window == "state"` its
+        pose columns replaced by the straight line through the newest estimate along the filter's
+        velocity (the carriages as measured)."""
+        w = np.array(window, np.float32)
+        if self.filter is None or not self.state_window:
+            return w
+        ages = np.arange(len(w) - 1, -1, -1, dtype=np.float64) * self.filter.dt
+        axes = [geometry.X, geometry.Y, geometry.YAW]
+        w[:, axes] = w[-1, axes][None].astype(np.float64) - ages[:, None] * self.filter.velocity()[None]
+        return w
 
     def applied_next(self, sent) -> np.ndarray:
         """(4,) the action that moves the box from the newest frame's measurement time to the next frame's:
