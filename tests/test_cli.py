@@ -187,3 +187,28 @@ def test_commands_that_compile_keep_the_compilation_cache(capsys, monkeypatch, t
         jax.config.update("jax_compilation_cache_dir", saved[0])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", saved[1])
     capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--friction-set", "0.5"], "two or more friction coefficients"),
+        (["--friction-set", "0.4", "-1"], "two or more friction coefficients"),
+        (["--friction-set", "0.4", "0.6", "--planner", "paper"], "option of the sampling planner"),
+        (["--friction-set", "0.4", "0.6", "--belief", "ensemble", "--estimator", "learned"], "belief='mean'"),
+    ],
+)
+def test_a_friction_set_the_controller_cannot_plan_over_is_refused_before_any_episode(argv, message, capsys):
+    assert main(["evaluate", "--boxes", "1", *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_the_friction_set_reaches_the_controller():
+    from boxjax.cli.args import resolve
+    from boxjax.cli.episodes import _controller_config
+    from boxjax.cli.main import build_parser
+
+    args = resolve(build_parser().parse_args(["evaluate", "--friction-set", "0.35", "0.5", "0.65"]))
+    assert _controller_config(args).friction_set == (0.35, 0.5, 0.65)
+    args = resolve(build_parser().parse_args(["evaluate"]))
+    assert _controller_config(args).friction_set is None

@@ -247,6 +247,20 @@ def planner_options(
     )
     option(
         p,
+        "--friction-set",
+        type=float,
+        nargs="+",
+        metavar="MU",
+        used_by=(*used_by, *prior, when("planner", "sampling", owner="the sampling planner")),
+        check=(
+            (lambda v: len(v) >= 2 and all(0 < m < 5 for m in v)),
+            "two or more friction coefficients in (0, 5)",
+        ),
+        help="robust planning: plan over these belt friction coefficients, one physics prior each, every "
+        "candidate scored by its mean cost over them (e.g. 0.35 0.5 0.65; ~3x the planning time)",
+    )
+    option(
+        p,
         "--explore-guard",
         type=guard_value,
         default=0.875,

@@ -152,6 +152,7 @@ def _controller_config(args):
         sampling=sampling,
         belief=getattr(args, "belief", None) or "mean",
         explore_guard=args.explore_guard or None,
+        friction_set=tuple(args.friction_set) if getattr(args, "friction_set", None) else None,
         monitor=monitor.OFF if getattr(args, "monitor", "on") == "off" else monitor.MonitorConfig(),
     )
 
