@@ -11,7 +11,10 @@ Prints ONE JSON object:
     check (two 10-step prior rollouts) plus the host-side decision, and the latency compensation
     (`planning.compensate`, 2 steps), beside the default sampling planner's step in the same run;
   * the backend / device and the machine's load.
+  * robust planning over three belt frictions (`--friction-set-only`): the default planner's step with
+    the prior and with the Mixture, same run.
 Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random] [--monitor-only]
+     [--friction-set-only]
 """
 
 from __future__ import annotations
@@ -71,6 +74,11 @@ def main() -> None:
     ap.add_argument("--rule", default="random", choices=planner.RULES)
     ap.add_argument("--horizon", type=int, default=1)
     ap.add_argument("--monitor-only", action="store_true", help="time the monitor (and the default planner)")
+    ap.add_argument(
+        "--friction-set-only",
+        action="store_true",
+        help="time robust planning over a friction set (ControllerConfig.friction_set) beside the default",
+    )
     args = ap.parse_args()
     calls = max(args.calls, 200)
     cfg = DEFAULT
@@ -99,6 +107,10 @@ def main() -> None:
         "rule": args.rule,
         "horizon": args.horizon,
     }
+    if args.friction_set_only:
+        out["friction_set"] = _friction_set(cfg, model, window, speed, target, keys, min(calls, 200))
+        _finish(out)
+        return
     if args.variant == "slip":
         out["monitor"] = _monitor(cfg, model, window, speed, target, keys, min(calls, 300))
     if args.monitor_only:
@@ -170,6 +182,33 @@ def _monitor(cfg, model, window, speed, target, keys, calls: int) -> dict:
     res["added_fraction_of_planner_step"] = (
         res["check_and_decide"]["median_ms"] / res["planner_default"]["median_ms"]
     )
+    return res
+
+
+def _friction_set(cfg, model, window, speed, target, keys, calls: int) -> dict:
+    """The default sampling planner's step with the prior, and with a `planning.Mixture` of the prior at
+    three belt frictions (`ControllerConfig.friction_set`, each candidate scored over the three), same run."""
+    import dataclasses
+
+    opts = sp.SamplingOptions()
+    splan = sp.make_sampling_planner(cfg, opts)
+    nominal = sp.initial_nominal(cfg, opts, speed)
+    frictions = (0.35, 0.5, 0.65)
+    mixture = planning.Mixture(
+        tuple(
+            dataclasses.replace(model, gripper=dataclasses.replace(model.gripper, friction=m))
+            for m in frictions
+        )
+    )
+    res = {"frictions": frictions}
+    for name, m in (("prior", model), ("friction_set", mixture)):
+        t0 = time.perf_counter()
+        jax.block_until_ready(splan(keys[0], m, window, speed, target, nominal))
+        res[name] = {
+            "compile_s": time.perf_counter() - t0,
+            **_latency(splan, lambda i, m=m: (keys[i], m, window, speed, target, nominal), calls),
+        }
+    res["ratio_median"] = res["friction_set"]["median_ms"] / res["prior"]["median_ms"]
     return res
 
 
