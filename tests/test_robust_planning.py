@@ -19,7 +19,7 @@ FRICTIONS = (0.35, 0.5, 0.65)
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"friction_set": (0.5,)}, "at least two"),
+        ({"friction_set": (0.5,)}, "two or more"),
         ({"friction_set": (0.3, -0.1)}, "friction coefficients"),
         ({"friction_set": [0.3, 0.6]}, "tuple"),
         ({"friction_set": FRICTIONS, "planner": "paper"}, "sampling planner"),

@@ -51,8 +51,8 @@ class ControllerConfig:
     # plans over a mixture of priors (`planning.Mixture`: one particle per setting, scored by
     # `SamplingOptions.particle_risk`; the sampling planner and belief="mean" only).
     prior_params: Any = None
-    # Robust planning over the belt friction (issue: the world's friction is not the model's): the belt
-    # friction coefficients the planner plans over, one physics prior per value in a `planning.Mixture`,
+    # Robust planning over the belt friction (the world's may not be the model's): the belt friction
+    # coefficients the planner plans over, one physics prior per value in a `planning.Mixture`,
     # each candidate scored over them by `SamplingOptions.particle_risk` (mean, mean + k std, worst).
     # None: the prior with the gripper's friction. The sampling planner, belief="mean", one prior setting.
     friction_set: tuple | None = None
@@ -110,7 +110,7 @@ class ControllerConfig:
                 and all(isinstance(m, int | float) and 0 < m < 5 for m in fs)
             ):
                 raise ValueError(
-                    f"friction_set must be a tuple of at least two friction coefficients > 0, got {fs!r}"
+                    f"friction_set must be a tuple of two or more friction coefficients in (0, 5), got {fs!r}"
                 )
             if self.planner != "sampling" or self.belief != "mean" or isinstance(self.prior_params, tuple):
                 raise ValueError(

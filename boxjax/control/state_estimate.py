@@ -86,8 +86,8 @@ class FilterConfig:
     # acceleration the prior starts from), "state" the straight line through the newest estimate along
     # the filter's velocity (no acceleration: differences of noisy estimates amplify the noise, the
     # filter's velocity does not), or None (default): "state" for a sensor with pose noise, else "frames".
-    # Measured (docs/results/faults.md#the-planners-window): 3 mm of noise, monitor on, 79 -> 89 of 100
-    # turned; 2 steps of latency alone (exact frames), 84 -> 78.
+    # Measured (docs/results/faults.md#the-planners-window): 3 mm of noise, 79 -> 90 of 100 turned with
+    # the monitor, 83 -> 96 without; 2 steps of latency alone (exact frames), 84 -> 78 with the monitor.
     window: str | None = None
 
     def __post_init__(self):
