@@ -345,3 +345,33 @@ def test_the_planner_step_runs_the_runtime_safety_monitor_with_its_model():
     assert on.stopped and np.array_equal(a[:2], [0.0, 0.0])  # the stop, not the turn
     off = PlannerStep(planner, Drifting(), jax.random.PRNGKey(0), monitor=MonitorConfig(enabled=False))
     assert np.array_equal(off(obs), turn) and not off.stopped
+
+
+def test_given_the_pose_noise_the_loop_estimates_the_pose_as_the_controller_does():
+    """With the tracking's noise stated, the loop filters the poses and the planner's window is the line
+    along the filter's velocity (`control.state_estimate`, as the simulated controller under a noisy
+    sensor): the velocity the prior takes from the window's last difference is steadier than the
+    difference of two noisy poses. Without it the window holds the poses as received."""
+    dt, v = 0.05, 0.04  # s, m/s along the tracking frame's x
+    gen = np.random.default_rng(0)
+    errs: dict = {"raw": [], "filtered": []}
+    loops = {
+        "raw": RobotLoop(lambda obs: np.zeros(4)),
+        "filtered": RobotLoop(lambda obs: np.zeros(4), pose_noise=(3.0, 1.5)),
+    }
+    for k in range(200):
+        t = 10 + dt * k
+        x = v * dt * k + 3e-3 * gen.standard_normal()
+        for name, loop in loops.items():
+            assert loop.observe(tracking(x=x, stamp=t), joints(stamp=t)) in ("first", "new")
+            if k > 40:
+                w = loop.window
+                errs[name].append(abs((w[-1, 2] - w[-2, 2]) / dt - v))
+    rms = {k: float(np.sqrt(np.mean(np.square(e)))) for k, e in errs.items()}
+    assert rms["filtered"] < 0.5 * rms["raw"], rms
+    # the raw loop's window is what came in
+    assert loops["raw"].window[-1, 2] == pytest.approx(x, abs=1e-7)
+    with pytest.raises(ValueError, match="pose_noise"):
+        RobotLoop(lambda obs: np.zeros(4), pose_noise=(-1.0, 0.0))
+    with pytest.raises(ValueError, match="pose_noise"):
+        RobotLoop(lambda obs: np.zeros(4), pose_noise=(0.0, 0.0))

@@ -223,6 +223,17 @@ def sensor_latency(settings: FilterConfig, faults) -> int:
     return faults.obs_latency if settings.latency_steps is None else settings.latency_steps
 
 
+def state_line(window, flt: PoseFilter) -> np.ndarray:
+    """(W, 5) float32 `window` (the controller's estimates, newest last) with its pose columns replaced by
+    the straight line through the newest estimate along the filter's velocity (the carriages as they are):
+    the planner's window with `FilterConfig.window == "state"`."""
+    w = np.array(window, np.float32)
+    ages = np.arange(len(w) - 1, -1, -1, dtype=np.float64) * flt.dt
+    axes = list(_AXES)
+    w[:, axes] = w[-1, axes][None].astype(np.float64) - ages[:, None] * flt.velocity()[None]
+    return w
+
+
 def state_window(settings: FilterConfig, faults) -> bool:
     """Whether the planner's window is the filter's state line (`FilterConfig.window`)."""
     if not filtered(settings, faults):

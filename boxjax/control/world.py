@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from boxjax import geometry, massdist
+from boxjax import massdist
 from boxjax.config import Config
 from boxjax.control.state_estimate import (
     FilterConfig,
@@ -28,6 +28,7 @@ from boxjax.control.state_estimate import (
     model_delay,
     model_motion,
     sensor_latency,
+    state_line,
     state_window,
 )
 from boxjax.estimator import explore
@@ -106,13 +107,9 @@ class World:
         controller's estimates (the newest last): as it is, or with `FilterConfig.window == "state"` its
         pose columns replaced by the straight line through the newest estimate along the filter's
         velocity (the carriages as measured)."""
-        w = np.array(window, np.float32)
         if self.filter is None or not self.state_window:
-            return w
-        ages = np.arange(len(w) - 1, -1, -1, dtype=np.float64) * self.filter.dt
-        axes = [geometry.X, geometry.Y, geometry.YAW]
-        w[:, axes] = w[-1, axes][None].astype(np.float64) - ages[:, None] * self.filter.velocity()[None]
-        return w
+            return np.array(window, np.float32)
+        return state_line(window, self.filter)
 
     def applied_next(self, sent) -> np.ndarray:
         """(4,) the action that moves the box from the newest frame's measurement time to the next frame's:

@@ -12,6 +12,14 @@ box at rest); the target yaw (the first observed yaw + pi / 2 unless given); and
 each step's targets being the last ones plus the action's steps (as the simulator does; they start at the
 first measured positions).
 
+Given the tracking pose's noise (`pose_noise`: the vision pipeline's specification), the loop estimates the
+pose as boxjax's controller does under a noisy sensor (`control.state_estimate`): a Kalman filter per
+planar coordinate over the tracked poses, and the planner's window by `FilterConfig.window`'s rule (for a
+noisy sensor, the line through the newest estimate along the filter's velocity: differences of noisy
+poses would give the prior a velocity as wrong as the box's own; docs/results/faults.md). Without it the
+tracked poses go into the window as received. It does not yet predict over the pipeline's latency (the
+simulated controller does: `planning.compensate`).
+
 It stops (belts to 0 at the acceleration limit, carriages held) instead of planning when no observation
 was ever valid (`no_observation`: no carriage command then, the carriages keep their last target), when
 this step's messages are invalid (`invalid_observation`, with the adapter's ValueError in
@@ -23,6 +31,8 @@ in a window must be one control step apart).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -33,6 +43,7 @@ from boxjax import planning
 from boxjax.config import DEFAULT, Config, TaskConfig
 from boxjax.control.monitor import Monitor, MonitorConfig
 from boxjax.control.monitor import check as monitor_check
+from boxjax.control.state_estimate import FilterConfig, PoseFilter, make_filter, state_line, state_window
 from boxjax.robot.adapter import (
     STOP_REASONS,
     AdapterConfig,
@@ -111,6 +122,8 @@ class RobotLoop:
       cfg: the adapter's conventions and limits.
       target_yaw: rad in the conveyor frame; None: the first observed yaw + `turn`.
       turn: rad, the turn to make (TaskConfig.target_yaw_delta, pi / 2).
+      pose_noise: (mm, degrees) std of the tracked pose (the vision pipeline's specification), or None:
+        the poses are taken as exact. pose_filter: the filter's settings (`FilterConfig`).
     """
 
     def __init__(
@@ -121,9 +134,23 @@ class RobotLoop:
         target_yaw: float | None = None,
         turn: float = TaskConfig().target_yaw_delta,
         window: int = planning.MIN_WINDOW,
+        pose_noise: tuple[float, float] | None = None,
+        pose_filter: FilterConfig = FilterConfig(),  # noqa: B008 (frozen)
     ):
         if window < planning.MIN_WINDOW:
             raise ValueError(f"window must be at least planning.MIN_WINDOW = {planning.MIN_WINDOW}")
+        if pose_noise is not None and not (
+            len(pose_noise) == 2 and all(math.isfinite(v) and v >= 0 for v in pose_noise) and any(pose_noise)
+        ):
+            raise ValueError(f"pose_noise must be (mm, degrees) >= 0, not both 0, got {pose_noise!r}")
+        from boxjax.sim.faults import Faults
+
+        # the sensor as the filter is told it (a noise-only specification: no latency is compensated)
+        self._sensor = (
+            None if pose_noise is None else Faults(obs_noise_mm=pose_noise[0], obs_noise_deg=pose_noise[1])
+        )
+        self._filter_settings = dataclasses.replace(pose_filter, enabled=True, latency_steps=0)
+        self._filter: PoseFilter | None = None
         self.plan_step, self.cfg, self.turn, self.length = plan_step, cfg, float(turn), int(window)
         self.target_yaw = None if target_yaw is None else float(target_yaw)
         self._window: list[np.ndarray] = []
@@ -133,8 +160,13 @@ class RobotLoop:
 
     @property
     def window(self) -> np.ndarray:
-        """(W, 5) the planar states the planner sees (oldest first); (0, 5) before any observation."""
-        return np.array(self._window, np.float64).reshape(-1, 5)
+        """(W, 5) the planar states the planner sees (oldest first); (0, 5) before any observation: the
+        tracked poses, or with `pose_noise` their estimates, as a line along the filter's velocity for a
+        noisy sensor (`FilterConfig.window`)."""
+        w = np.array(self._window, np.float64).reshape(-1, 5)
+        if self._filter is not None and len(w) and state_window(self._filter_settings, self._sensor):
+            return state_line(w, self._filter).astype(np.float64)
+        return w
 
     @property
     def p_target(self) -> np.ndarray | None:
@@ -158,6 +190,12 @@ class RobotLoop:
             what = "restarted"
         else:
             what = "new"
+        if (
+            self._sensor is not None
+        ):  # estimate the pose: one filter step per new frame, a new filter after a gap
+            if what != "new" or self._filter is None:
+                self._filter = make_filter(self._filter_settings, self._sensor, self.cfg.gripper.control_dt)
+            s = self._filter.step(s)
         if what == "new":
             self._window = [*self._window, s][-self.length :]
         else:
