@@ -190,9 +190,8 @@ class RobotLoop:
             what = "restarted"
         else:
             what = "new"
-        if (
-            self._sensor is not None
-        ):  # estimate the pose: one filter step per new frame, a new filter after a gap
+        # estimate the pose: one filter step per new frame, a new filter after a gap
+        if self._sensor is not None:
             if what != "new" or self._filter is None:
                 self._filter = make_filter(self._filter_settings, self._sensor, self.cfg.gripper.control_dt)
             s = self._filter.step(s)
