@@ -54,6 +54,7 @@ from boxjax.robot.adapter import (
     stop_commands,
 )
 from boxjax.robot.messages import CarriageCommand, JointState, TrackingFeedback, VelocityControl
+from boxjax.sim.faults import Faults
 
 LOOP_STOP_REASONS = (*STOP_REASONS, "no_observation", "invalid_observation")
 
@@ -143,8 +144,6 @@ class RobotLoop:
             len(pose_noise) == 2 and all(math.isfinite(v) and v >= 0 for v in pose_noise) and any(pose_noise)
         ):
             raise ValueError(f"pose_noise must be (mm, degrees) >= 0, not both 0, got {pose_noise!r}")
-        from boxjax.sim.faults import Faults
-
         # the sensor as the filter is told it (a noise-only specification: no latency is compensated)
         self._sensor = (
             None if pose_noise is None else Faults(obs_noise_mm=pose_noise[0], obs_noise_deg=pose_noise[1])
