@@ -444,3 +444,34 @@ def test_by_default_the_state_window_is_used_for_a_noisy_sensor_only():
     assert not World(CFG, F.Faults(obs_noise_mm=3), FilterConfig(window="frames"), key, box).state_window
     with pytest.raises(ConfigError, match="window"):
         FilterConfig(window="line")
+
+
+def test_batched_episodes_give_the_model_driven_filter_its_prediction_every_mpc_step():
+    """The batched path (`batch.run_episodes`) makes the filter's model predictions in one call per step,
+    for every live box, as `run_episode` does per box."""
+    from boxjax import ControllerConfig
+    from boxjax.control import batch
+    from boxjax.control import world as world_mod
+    from boxjax.planners.sampling import SamplingOptions
+
+    calls: list = []
+    expect = world_mod.World.expect
+
+    def spy(self, predicted):
+        calls.append(np.asarray(predicted))
+        return expect(self, predicted)
+
+    ctrl = ControllerConfig(
+        sampling=SamplingOptions(gradient_steps=0), pose_filter=FilterConfig(motion="model")
+    )
+    boxes = [massdist.named(n, CFG.box) for n in ("A", "B")]
+    world_mod.World.expect = spy
+    try:
+        keys = [jax.random.PRNGKey(i) for i in range(2)]
+        faults = F.Faults(obs_noise_mm=2.0, obs_latency=1)
+        res = batch.run_episodes(CFG, boxes, keys, ctrl=ctrl, max_steps=80, faults=faults)
+    finally:
+        world_mod.World.expect = expect
+    mpc_steps = sum(len(r.trace.actions) - r.summary["exploration_steps"] for r in res)  # a plan per MPC step
+    assert mpc_steps > 0 and len(calls) == mpc_steps
+    assert all(c.shape == (5,) and np.all(np.isfinite(c)) for c in calls)

@@ -364,16 +364,19 @@ def run_episodes(
         compensate_b = _batched_compensate()
         predict_b = _batched_predict_first()
 
+        def measured(boxes_: list[int]) -> tuple[np.ndarray, np.ndarray]:
+            """These boxes' planner windows (`World.planner_window`) and belt speeds at their newest
+            frames' measurement times, stacked."""
+            w = [
+                planning.check_window(rec[b].world.planner_window(windows[b][-planning.MIN_WINDOW :]))
+                for b in boxes_
+            ]
+            return np.stack(w), np.stack([rec[b].seen[-1][1] for b in boxes_]).astype(np.float32)
+
         def observations(boxes_: list[int], model_b=None) -> planning.Observation:
             """The planner's observations of these boxes, stacked (one host -> device copy per field),
             predicted over the loop's delays with each box's model (`planning.compensate`)."""
-            w = np.stack(
-                [
-                    planning.check_window(rec[b].world.planner_window(windows[b][-planning.MIN_WINDOW :]))
-                    for b in boxes_
-                ]
-            )
-            belt = np.stack([rec[b].seen[-1][1] for b in boxes_]).astype(np.float32)
+            w, belt = measured(boxes_)
             if delay and model_b is not None:
                 flying = np.stack([controller.in_flight(rec[b].sent, delay) for b in boxes_])
                 w, belt = compensate_b(model_b, put(w), put(belt), put(flying))
@@ -443,13 +446,7 @@ def run_episodes(
                 r.mpc_steps += 1
             if rec[live[0]].world.model_motion:  # the filters' predictions of the next frame, one call
                 use = [b if b is not None else live[0] for b in slot_box]
-                w = np.stack(
-                    [
-                        planning.check_window(rec[b].world.planner_window(windows[b][-planning.MIN_WINDOW :]))
-                        for b in use
-                    ]
-                )
-                belt = np.stack([rec[b].seen[-1][1] for b in use]).astype(np.float32)
+                w, belt = measured(use)
                 nxt = np.stack([rec[b].world.applied_next(rec[b].sent) for b in use])
                 expected = np.asarray(predict_b(model_b, put(w), put(belt), put(nxt)))
                 for k, b in enumerate(slot_box):

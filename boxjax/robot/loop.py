@@ -150,6 +150,7 @@ class RobotLoop:
         )
         self._filter_settings = dataclasses.replace(pose_filter, enabled=True, latency_steps=0)
         self._filter: PoseFilter | None = None
+        self._state_line = self._sensor is not None and state_window(self._filter_settings, self._sensor)
         self.plan_step, self.cfg, self.turn, self.length = plan_step, cfg, float(turn), int(window)
         self.target_yaw = None if target_yaw is None else float(target_yaw)
         self._window: list[np.ndarray] = []
@@ -163,7 +164,7 @@ class RobotLoop:
         tracked poses, or with `pose_noise` their estimates, as a line along the filter's velocity for a
         noisy sensor (`FilterConfig.window`)."""
         w = np.array(self._window, np.float64).reshape(-1, 5)
-        if self._filter is not None and len(w) and state_window(self._filter_settings, self._sensor):
+        if self._state_line and self._filter is not None and len(w):
             return state_line(w, self._filter).astype(np.float64)
         return w
 
