@@ -1,24 +1,28 @@
 """Does training H on explorations seen through randomised sensors keep its hazard decision under sensor
 faults? (issue: the real world, item 3: domain randomisation of H's training data.)
 
-Two estimators are trained on the SAME simulated explorations with the same key and settings
+Up to three estimators are trained on the SAME simulated explorations with the same key and settings
 (`training.estimator.DEFAULT_ESTIMATOR`): "clean" on the simulator's exact states, "randomised" on the
 same explorations seen through a sensor drawn per box (`training.randomise.SensorRandomisation`: a quarter
 perfect, the rest 0-5 mm / 0-2.5 degrees of pose noise and 0-20 % dropped frames, through the run-time
-filter and `World.for_estimator`). Both, and the shipped H (trained on 288k clean explorations), then
-decide on fresh boxes (safe and hazardous, seed 2000, never trained on) explored in several sensor rows:
-hazardous boxes refused, safe boxes refused (false aborts), with 95 % intervals.
+filter and `World.for_estimator`), and "told" on the same view, told each exploration's sensor as two
+more inputs (`EstimatorConfig.sensor_inputs`; at run time the controller tells it its own). They, and the
+shipped H (trained on 288k clean explorations), then decide on fresh boxes (safe and hazardous, seed 2000,
+never trained on) explored in several sensor rows: hazardous boxes refused, safe boxes refused (false
+aborts), with 95 % intervals.
 
     python scripts/estimator_randomisation.py --boxes 30000 --work /tmp/dr \
         --out benchmarks/results_estimator_randomisation.json
 
-Stages are cached in --work (the dataset, its randomised view, the two checkpoints), so a second run only
-evaluates.
+The explorations are simulated in parts of --part boxes, part i from seed + i (more boxes extend the same
+data), and every stage is cached in --work (the parts, their randomised views, the checkpoints), so a
+second run only evaluates.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -50,9 +54,9 @@ ROWS = {
 }
 
 
-def _train(data: dict, path: str, seed: int) -> dict:
+def _train(data: dict, path: str, seed: int, est_cfg: E.EstimatorConfig) -> dict:
     t0 = time.perf_counter()
-    model, history = E.train(jax.random.PRNGKey(seed), data, DEFAULT_ESTIMATOR, box=CFG.box, progress=False)
+    model, history = E.train(jax.random.PRNGKey(seed), data, est_cfg, box=CFG.box, progress=False)
     val = {k: v[history["val_index"]] for k, v in data.items()}
     model, calibration = E.calibrate(model, val, HAZARD_RECALL_TARGET)
     E.save(path, model)
@@ -87,9 +91,47 @@ def _decisions(weights: str | None, boxes, faults: Faults) -> dict:
     }
 
 
+def _parts(args) -> tuple[dict, dict, dict]:
+    """(exact explorations, their randomised view, timings) of args.boxes boxes, in cached parts."""
+    if args.boxes % args.part:
+        raise SystemExit(f"--boxes ({args.boxes}) must be a multiple of --part ({args.part})")
+    datas, views, times = [], [], {"data_s": 0.0, "view_s": 0.0}
+    for i in range(args.boxes // args.part):
+        seed = args.seed + i
+        clean_path = os.path.join(args.work, f"part_s{seed}_{args.part}.npz")
+        view_path = os.path.join(args.work, f"view_s{seed}_{args.part}.npz")
+        if os.path.exists(clean_path):
+            data, _ = ds.load(clean_path)
+        else:
+            t0 = time.perf_counter()
+            data = ds.generate(jax.random.PRNGKey(seed), args.part, CFG, progress=True)
+            ds.save(clean_path, data, ds.make_meta(CFG, seed, ds.P_HAZARDOUS, "native"))
+            times["data_s"] += time.perf_counter() - t0
+        if os.path.exists(view_path):
+            view = dict(np.load(view_path))
+        else:
+            t0 = time.perf_counter()
+            view = sensor_view(data, CFG, SensorRandomisation(), seed)
+            np.savez(view_path, **view)
+            times["view_s"] += time.perf_counter() - t0
+            print(f"randomised view of part {i}: {time.perf_counter() - t0:.0f} s", flush=True)
+        datas.append(data)
+        views.append(view)
+
+    def cat(parts):
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    return cat(datas), cat(views), times
+
+
+ESTIMATORS = ("clean", "randomised", "told")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--boxes", type=int, default=30000, help="simulated explorations to train on")
+    ap.add_argument("--part", type=int, default=30000, help="boxes per simulated (and cached) part")
+    ap.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=list(ESTIMATORS))
     ap.add_argument("--work", default="/tmp/estimator_randomisation", help="cache of data and checkpoints")
     ap.add_argument("--eval-safe", type=int, default=100)
     ap.add_argument("--eval-hazardous", type=int, default=100)
@@ -100,32 +142,17 @@ def main() -> None:
     os.makedirs(args.work, exist_ok=True)
     if args.out:  # writable before the work starts
         check_writable_dir(os.path.dirname(os.path.abspath(args.out)), "--out's directory")
-    clean_path = os.path.join(args.work, f"clean_{args.boxes}.npz")
-    view_path = os.path.join(args.work, f"randomised_{args.boxes}.npz")
     report: dict = {"boxes": args.boxes, "seed": args.seed, "randomisation": vars(SensorRandomisation())}
-
-    if os.path.exists(clean_path):
-        data, _ = ds.load(clean_path)
-    else:
-        t0 = time.perf_counter()
-        data = ds.generate(jax.random.PRNGKey(args.seed), args.boxes, CFG, progress=True)
-        ds.save(clean_path, data, ds.make_meta(CFG, args.seed, ds.P_HAZARDOUS, "native"))
-        report["data_s"] = time.perf_counter() - t0
-    if os.path.exists(view_path):
-        view = dict(np.load(view_path))
-    else:
-        t0 = time.perf_counter()
-        view = sensor_view(data, CFG, SensorRandomisation(), args.seed)
-        np.savez(view_path, **view)
-        report["view_s"] = time.perf_counter() - t0
-        print(f"randomised view: {report['view_s']:.0f} s", flush=True)
+    data, view, times = _parts(args)
+    report.update(times)
 
     weights = {"shipped (288k clean)": None}
     report["training"] = {}
-    for name, d in (("clean", data), ("randomised", view)):
+    for name in args.estimators:
         path = os.path.join(args.work, f"H_{name}_{args.boxes}.npz")
         if not os.path.exists(path):
-            report["training"][name] = _train(d, path, args.seed)
+            est_cfg = dataclasses.replace(DEFAULT_ESTIMATOR, sensor_inputs=name == "told")
+            report["training"][name] = _train(data if name == "clean" else view, path, args.seed, est_cfg)
             print(name, json.dumps(report["training"][name]), flush=True)
         weights[f"{name} ({args.boxes // 1000}k)"] = path
 

@@ -453,3 +453,56 @@ def test_choose_hazard_threshold_hand_computed():
     assert E.choose_hazard_threshold(curve, 0.98) == 0.3
     assert E.choose_hazard_threshold(curve, 0.95) == 0.2
     assert E.choose_hazard_threshold(curve[:2], 0.98) == 0.2
+
+
+# ------------------------------------------------------------------------------------- told the sensor
+
+
+def _seen_through_sensors(data: dict, seed: int) -> dict:
+    """`data` seen through a sensor that reads each box's motion as that of a box one standardised mass unit
+    heavier when obs_noise_mm = 1 (drawn 0 or 1 per box): without the sensor's specification the mass is
+    ambiguous; with it, it is not."""
+    rng = np.random.default_rng(seed)
+    n = len(data["traj"])
+    mm = rng.integers(0, 2, n).astype(np.float32)
+    fixed = np.random.default_rng(1234)  # `synthetic`'s actions and response, drawn in its order
+    fixed.uniform(-0.2, 0.2, (T, 4))
+    mass_response = fixed.normal(0, 0.01, (T, 5, 5))[:, :, 4]  # (T, 5) per unit of standardised mass
+    drift = np.concatenate([np.zeros((1, 5)), np.cumsum(mass_response, 0)])  # (T + 1, 5)
+    traj, final = data["traj"].copy(), data["final"].copy()
+    traj[:, :, :5] += mm[:, None, None] * drift[None, :T]
+    traj[:, :, 9:] -= 1e-4 * mm[:, None, None]  # the belts' slowing, as for a heavier box
+    final += mm[:, None] * drift[T]
+    return {**data, "traj": traj, "final": final, "obs_noise_mm": mm, "drop_rate": np.zeros(n, np.float32)}
+
+
+def test_an_estimator_told_the_sensor_uses_it(tmp_path):
+    """`EstimatorConfig(sensor_inputs=True)`: H takes the sensor's specification as two more inputs, learns
+    what a blind H cannot, keeps the setting through a checkpoint, and reads None as a perfect sensor."""
+    data = _seen_through_sensors(synthetic(0, 300), 0)
+    test = _seen_through_sensors(synthetic(1, 200), 1)
+    blind, _ = E.train(jax.random.key(0), data, CFG, box=BOX, progress=False)
+    told_cfg = dataclasses.replace(CFG, sensor_inputs=True)
+    told, _ = E.train(jax.random.key(0), data, told_cfg, box=BOX, progress=False)
+    assert told.n_features == blind.n_features + len(E.SENSOR_INPUTS)
+    blind_loss, told_loss = E.losses(blind, test), E.losses(told, test)
+    assert told_loss["mass_mse"] < 0.3 * blind_loss["mass_mse"], (told_loss, blind_loss)
+
+    path = tmp_path / "told.npz"
+    E.save(path, told)
+    again = E.load(path, expected_box_config=BOX)
+    assert again.cfg.sensor_inputs and again.n_features == told.n_features
+    traj, final = test["traj"][3], test["final"][3]
+    perfect = E.predict_checked(again, traj, final)
+    np.testing.assert_allclose(perfect.prob, E.predict_checked(again, traj, final, [0.0, 0.0]).prob)
+    one_mm = E.predict_checked(again, traj, final, {"obs_noise_mm": 1.0, "drop_rate": 0.0})
+    assert abs(float(perfect.mass) - float(one_mm.mass)) > 0.5  # kg: read as a lighter box
+    est = E.estimate(again, traj, final, {"obs_noise_mm": 1.0, "drop_rate": 0.0})
+    assert est["hazard_prob"] == pytest.approx(float(one_mm.hazard), rel=1e-5)
+    # a blind H ignores what it is told
+    np.testing.assert_array_equal(
+        E.predict_checked(blind, traj, final).prob, E.predict_checked(blind, traj, final, [1.0, 0.0]).prob
+    )
+    for bad in ([-1.0, 0.0], [1.0], [np.nan, 0.0]):
+        with pytest.raises(ValueError, match="sensor's specification"):
+            E.predict_checked(again, traj, final, bad)

@@ -16,7 +16,7 @@ from boxjax.sim.faults import Faults
 from boxjax.training.randomise import SensorRandomisation, seen_exploration, sensor_view
 
 
-def _episode_view(faults: Faults, key):
+def _episode_view(faults: Faults, key, ctrl: ControllerConfig = ControllerConfig()):  # noqa: B008 (frozen)
     """Explore box B through `faults` with an estimator that records what it is given."""
     given = {}
 
@@ -24,8 +24,8 @@ def _episode_view(faults: Faults, key):
         given.update(exploration)
         return {"distribution": massdist.named("B", CFG.box), "hazardous": True}  # refuse: no turn
 
-    ep = run_episode(CFG, massdist.named("B", CFG.box), key, estimator=estimator, ctrl=ControllerConfig(),
-                     faults=faults, max_steps=60)  # fmt: skip
+    ep = run_episode(CFG, massdist.named("B", CFG.box), key, estimator=estimator, ctrl=ctrl, faults=faults,
+                     max_steps=60)  # fmt: skip
     n = explore.N_STEPS
     traj, final = explore.trajectory(ep.trace.s[: n + 1], ep.trace.belt_speed[: n + 1], ep.trace.actions[:n])
     return given, np.asarray(traj), np.asarray(final)
@@ -42,6 +42,23 @@ def test_the_training_view_is_what_the_estimator_is_given_in_an_episode(faults):
     np.testing.assert_allclose(view_traj, np.asarray(expect), atol=1e-6)
     np.testing.assert_allclose(view_final, np.asarray(expect_final), atol=1e-6)
     assert not np.allclose(view_traj[:, :5], traj[:, :5], atol=1e-4)  # the sensor did change it
+    # and it is told the sensor, as H trained on the view is (`EstimatorConfig.sensor_inputs`)
+    assert given["sensor"] == {"obs_noise_mm": faults.obs_noise_mm, "drop_rate": faults.drop_rate}
+
+
+def test_the_estimator_is_told_the_sensor_the_controller_states():
+    """The filter's stated noise, when set, is what the estimator is told; a perfect sensor tells nothing
+    (an H told the sensor reads that as a perfect one)."""
+    import dataclasses
+
+    from boxjax.control.state_estimate import FilterConfig
+
+    key = jax.random.PRNGKey(3)
+    perfect, _, _ = _episode_view(Faults(), key)
+    assert "sensor" not in perfect
+    ctrl = dataclasses.replace(ControllerConfig(), pose_filter=FilterConfig(noise_mm=2.0))
+    given, _, _ = _episode_view(Faults(obs_noise_mm=3, obs_noise_deg=1.5), key, ctrl)
+    assert given["sensor"] == {"obs_noise_mm": 2.0, "drop_rate": 0.0}
 
 
 def test_dropped_frames_are_bridged_not_held():

@@ -69,6 +69,10 @@ class World:
         self.model_motion = self.active and model_motion(pose_filter, faults)
         self._expected = None  # the model's prediction of the next frame (`expect`)
         self.state_window = self.active and state_window(pose_filter, faults)
+        # the sensor's specification as the controller states it (`estimator.SENSOR_INPUTS`: pose noise
+        # std in mm, the filter's if set, and the share of dropped frames), for an estimator told it
+        stated_mm = faults.obs_noise_mm if pose_filter.noise_mm is None else pose_filter.noise_mm
+        self.sensor_spec = {"obs_noise_mm": float(stated_mm), "drop_rate": float(faults.drop_rate)}
         if not self.active:
             self.sensor = self.actuator = self.filter = self.shift = None
             return
@@ -126,11 +130,12 @@ class World:
     def for_estimator(self, data: dict, n_steps: int) -> dict:
         """The exploration as the estimator takes it, from the controller's record `data` (states and belt
         speeds seen, actions sent, `episode._controller_data`) of the fixed sequence's `n_steps` and the
-        rest sent after it: the poses at their measurement times, a dropped frame (held: its pose, the
-        carriages and belt speeds stale) replaced by the straight line between the fresh frames around it
-        (the record is complete by now, so the estimator need not see a stale frame), aligned with the
-        actions that led to them (`explore.align`; a step cap that cut the rest short: aligned by the
-        frames that arrived). With a perfect sensor and no action latency: `data` itself."""
+        rest sent after it, with "sensor" the sensor's specification as the controller states it
+        (`sensor_spec`, for an H told it): the poses at their measurement times, a dropped frame (held:
+        its pose, the carriages and belt speeds stale) replaced by the straight line between the fresh
+        frames around it (the record is complete by now, so the estimator need not see a stale frame),
+        aligned with the actions that led to them (`explore.align`; a step cap that cut the rest short:
+        aligned by the frames that arrived). With a perfect sensor and no action latency: `data` itself."""
         if not self.frames:
             return data
         frames = {
@@ -142,7 +147,7 @@ class World:
         }
         # a step cap that cut the rest short leaves fewer frames: align by what arrived
         delay = min(self.exploration_delay, len(frames["s"]) - 1 - n_steps)
-        return explore.align(frames, max(delay, 0), n_steps)
+        return {**explore.align(frames, max(delay, 0), n_steps), "sensor": self.sensor_spec}
 
     def y_std(self) -> float:
         """(m) the standard deviation of the controller's estimate of the box's y: the filter's, the

@@ -72,9 +72,10 @@ def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str 
                 f"{exploration['actions'].shape[0]} steps (did the box leave the belts while exploring?)"
             )
         traj, final = explore.trajectory(exploration["s"], exploration["belt_speed"], applied)
-        out = estimate_with(model, np.asarray(traj), np.asarray(final))
+        sensor = exploration.get("sensor")  # the sensor's specification (`World.for_estimator`)
+        out = estimate_with(model, np.asarray(traj), np.asarray(final), sensor)
         if hazard_rule != "head":
-            a = hazard.assess(model, np.asarray(traj), np.asarray(final), hazard_rule)
+            a = hazard.assess(model, np.asarray(traj), np.asarray(final), hazard_rule, sensor=sensor)
             keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")
             out.update({k: a[k] for k in keys}, hazard_rule=hazard_rule)
         return out
