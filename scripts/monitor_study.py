@@ -42,6 +42,9 @@ ROWS = {
 STOP_AT = (0.6, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 K_SIGMA = (0.0, 1.0, 2.0)
 DELAY_STD = (0.0, 0.0018)  # m per sqrt(step): the prediction's error over the delay (MonitorConfig.delay_std)
+# a miss of the prediction over the delay beyond this many of its expected std replaces that std
+# (MonitorConfig.miss_sigmas; 0: off)
+MISS_SIGMAS = (0.0, 2.0, 3.0, 4.0)
 
 
 def run_row(faults: Faults, n: int, seed: int) -> list[dict]:
@@ -71,19 +74,35 @@ def run_row(faults: Faults, n: int, seed: int) -> list[dict]:
     ]
 
 
+def _sigma(sig: float, miss: float, delay_var: float, miss_sigmas: float) -> float:
+    """The monitor's std of the predicted balance error (`Monitor.decide`, the gripper not at rest)."""
+    if miss_sigmas > 0 and miss > miss_sigmas * np.sqrt(delay_var + 2 * sig**2):
+        delay_var = max(delay_var, miss**2)
+    return float(np.sqrt(sig**2 + delay_var))
+
+
 def analyse(
-    episodes: list[dict], stop_at: float, k: float, delay_std: float = 0.0, delay: int = 0, window: int = 10
+    episodes: list[dict],
+    stop_at: float,
+    k: float,
+    delay_std: float = 0.0,
+    delay: int = 0,
+    window: int = 10,
+    miss_sigmas: float = 0.0,
 ) -> dict:
     """The alarms a setting would raise, against each episode's true balance trace: a crossing is noticed
     when an alarm came within `window` steps before the action that led to it (the stop's horizon; an
     older alarm would have been followed by a resume); `lead` is how long before. In episodes turned
-    without crossing, every alarm onset (a step that alarms after one that did not) is a needless stop."""
+    without crossing, every alarm onset (a step that alarms after one that did not) is a needless stop.
+    Logs of before the miss was recorded (4 columns) count as no miss."""
     limit = CFG.task.balance_limit
     leads, unnoticed, onsets, needless, turned = [], 0, 0, 0, 0
+    dvar = delay * delay_std**2
     for ep in episodes:
         alarm = {
-            t: go + k * np.sqrt(sig**2 + delay * delay_std**2) >= stop_at * limit
-            for t, go, _, sig in ep["log"]
+            row[0]: row[1] + k * _sigma(row[3], row[4] if len(row) > 4 else 0.0, dvar, miss_sigmas)
+            >= stop_at * limit
+            for row in ep["log"]
         }
         over = np.flatnonzero(np.asarray(ep["balance"]) > limit)
         if over.size:
@@ -103,6 +122,7 @@ def analyse(
         "stop_at": stop_at,
         "k_sigma": k,
         "delay_std": delay_std,
+        "miss_sigmas": miss_sigmas,
         "crossings": int(len(leads) + unnoticed),
         "unnoticed": unnoticed,
         "lead_steps_min": min(leads) if leads else None,
@@ -133,7 +153,13 @@ def main() -> None:
         t0 = time.perf_counter()
         eps = earlier[name] if earlier is not None else run_row(ROWS[name], args.boxes, args.seed)
         delay = ROWS[name].obs_latency + ROWS[name].action_latency  # what the controller predicts over
-        table = [analyse(eps, a, k, ds, delay) for ds in DELAY_STD for k in K_SIGMA for a in STOP_AT]
+        table = [
+            analyse(eps, a, k, ds, delay, miss_sigmas=ms)
+            for ds in DELAY_STD
+            for k in K_SIGMA
+            for a in STOP_AT
+            for ms in (MISS_SIGMAS if ds > 0 else (0.0,))
+        ]
         wall = time.perf_counter() - t0
         raw[name] = eps
         if args.raw and earlier is None:

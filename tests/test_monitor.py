@@ -104,6 +104,8 @@ def test_monitor_settings_are_validated_by_name():
         ({"horizon": 0}, "horizon"),
         ({"k_sigma": -1.0}, "k_sigma"),
         ({"max_stops": 0}, "max_stops"),
+        ({"miss_sigmas": -1.0}, "miss_sigmas"),
+        ({"miss_window": 0}, "miss_window"),
     ):
         with pytest.raises(ConfigError, match=name):
             MonitorConfig(**kwargs)
@@ -274,3 +276,33 @@ def test_a_stop_follows_its_plan_then_rests_and_resumes_only_once_rest_is_observ
         np.testing.assert_array_equal(out[t], 0.0)
     assert m.resumes == [5]
     np.testing.assert_array_equal(out[5], planned)
+
+
+def test_a_prediction_that_misses_what_then_arrived_widens_the_margin():
+    """With 2 steps of delay, the offset predicted at step t for when its action applies is compared with
+    the estimate that arrives at t + 2 (of that time). While the predictions come true the margin is
+    `delay_std`'s; a 1.5 cm miss (the box slipped) is far beyond it, and for `miss_window` steps it is the
+    prediction's std: the same 2 cm predicted error now stops the turn. With miss_sigmas = 0 it does not."""
+    planned, stop = np.array([0.2, -0.2, 0.0, 0.0]), np.zeros((1, 4))
+    go = np.array([0.5 * LIMIT] * 2)  # 2 cm
+    moving = np.array([0.2, -0.2])
+
+    def run(miss_sigmas: float, slip: float) -> list[bool]:
+        m = Monitor(
+            CFG, MonitorConfig(stop_at=0.8, k_sigma=2.0, miss_sigmas=miss_sigmas, miss_window=3), delay=2
+        )
+        stopped = []
+        for t in range(10):
+            truth = 0.001 * t + (slip if t >= 5 else 0.0)  # the box's offset; it jumps at t = 5
+            measured = np.asarray(_state(y=truth - 0.002))  # the estimate is of 2 steps ago
+            predicted = np.asarray(_state(y=0.001 * t))  # the model foresaw no slip
+            m.decide(t, planned, go, stop, 0.001, 0, moving, measured=measured, predicted=predicted)
+            stopped.append(m.stopped)
+        return stopped, m.log
+
+    calm, log = run(3.0, 0.0)
+    assert not any(calm) and max(row[4] for row in log) < 1e-6  # the predictions came true: no miss
+    assert log[1][4] == 0.0  # nothing to compare before `delay` steps have passed
+    slipped, log = run(3.0, 0.015)
+    assert slipped.index(True) == 5 and log[5][4] == pytest.approx(0.015, abs=1e-6)
+    assert not any(run(0.0, 0.015)[0])  # off: delay_std's margin alone

@@ -427,6 +427,7 @@ def run_episodes(
                     ctrl.monitor.horizon, ctrl.monitor.backup,
                 )  # fmt: skip
                 errors, stops, belts = np.asarray(errors), np.asarray(stops), np.asarray(obs_b.belt_speed)
+                newest = np.asarray(obs_b.window[:, -1])  # predicted for when the actions apply
             full = np.zeros((B, 4))
             active = np.zeros(B, bool)
             for k, b in enumerate(slot_box):
@@ -439,8 +440,9 @@ def run_episodes(
                 a, r = actions[k], rec[b]
                 if r.monitor is not None:
                     a = r.monitor.decide(
-                        len(r.actions), a, errors[k], stops[k], r.world.y_std(), r.world.stale, belts[k]
-                    )
+                        len(r.actions), a, errors[k], stops[k], r.world.y_std(), r.world.stale, belts[k],
+                        measured=windows[b][-1], predicted=newest[k],
+                    )  # fmt: skip
                 full[b], active[b] = r.send(sim, b, a), True
                 r.plan_ms.append(ms)
                 r.mpc_steps += 1

@@ -298,6 +298,8 @@ def run_episode(
                     world.y_std(),
                     world.stale,
                     np.asarray(obs.belt_speed),
+                    measured=window[-1],
+                    predicted=np.asarray(obs.window[-1]),
                 )
             if ctrl.observer_gain > 0:
                 predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)

@@ -77,6 +77,14 @@ class MonitorConfig:
     # root of a control step: 1.65 / 2.48 / 3.68 mm rms of balance error at 1 / 2 / 4 steps with the prior
     # on the true box (scripts/monitor_study.py, docs/results/faults.md).
     delay_std: float = 0.0018
+    # The prediction over the delay, checked against what then arrived: every step the balance offset
+    # predicted `delay` steps ago for now is compared with the newest estimate (the miss). A miss beyond
+    # `miss_sigmas` of its expected std (the delay's and the estimate's) says the model is failing here
+    # (the box slips, the friction is not the model's): the prediction's std is then the largest miss of
+    # the last `miss_window` steps instead of `delay_std`'s. 0 turns it off. With no delay there is
+    # nothing to check.
+    miss_sigmas: float = 0.0
+    miss_window: int = 5
     max_stops: int = 60  # the max_stops-th balance stop is final
     stop_timeout: int = 100  # control steps (5 s) a stop may last without resuming before it is final
     stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
@@ -100,10 +108,10 @@ class MonitorConfig:
             bad("resume_below", "must be a fraction of the balance limit in (0, stop_at)")
         if not (isinstance(self.horizon, int) and 1 <= self.horizon <= 40):
             bad("horizon", "must be a whole number of control steps in [1, 40]")
-        for name in ("k_sigma", "delay_std"):
+        for name in ("k_sigma", "delay_std", "miss_sigmas"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
-        for name in ("max_stops", "stop_timeout", "stale_steps"):
+        for name in ("max_stops", "stop_timeout", "stale_steps", "miss_window"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 bad(name, "must be a whole number >= 1")
@@ -191,7 +199,10 @@ class Monitor:
     def __init__(self, cfg: Config, settings: MonitorConfig, delay: int = 0):
         """`delay`: the control steps the controller predicts its estimate over (`World.delay`)."""
         self.cfg, self.m = cfg, settings
+        self.delay = delay
         self.delay_var = delay * settings.delay_std**2
+        self._predicted: deque = deque(maxlen=max(delay, 1))  # offsets predicted for the steps to come
+        self._misses: deque = deque(maxlen=settings.miss_window)  # |miss| of the last steps (m)
         self.limit = cfg.task.balance_limit
         self.mode, self.reason = RUN, None
         self.stops: list[tuple[int, str]] = []  # (control step, reason) of every stop issued
@@ -201,8 +212,9 @@ class Monitor:
         self.final = False
         self.ended = False
         self.stopping_steps: set[int] = set()  # control steps at which a stop action was sent
-        # per check: (t, go error, stop error, the estimate's sigma before the delay's is added)
-        self.log: list[tuple[int, float, float, float]] = []
+        # per check: (t, go error, stop error, the estimate's sigma before the delay's is added, the largest
+        # miss of the prediction over the delay in the last `miss_window` steps)
+        self.log: list[tuple[int, float, float, float, float]] = []
         self.would_stop: list[int] = []  # shadow mode: the steps at which it would have stopped
         self._plan: deque = deque()  # the stop's actions still to send (then rest)
         # known at rest: nothing but rest sent over the delay and the step before it, belts at rest (so the
@@ -210,7 +222,18 @@ class Monitor:
         # resumes from a state observed at rest, not one predicted through its own carriage moves)
         self.rest = RestWatch(delay + 1, settings.standstill_speed)
 
-    def decide(self, t: int, action, errors, stop_plan, sigma: float, stale: int, belt_speed) -> np.ndarray:
+    def decide(
+        self,
+        t: int,
+        action,
+        errors,
+        stop_plan,
+        sigma: float,
+        stale: int,
+        belt_speed,
+        measured=None,
+        predicted=None,
+    ) -> np.ndarray:
         """The action to send at control step t.
 
         Args:
@@ -219,11 +242,21 @@ class Monitor:
           sigma: the std of the estimate's y at its measurement (m; the prediction's over the delay is
           added, `delay_std`, unless the gripper is known at rest); stale: control steps since the
           last fresh frame; belt_speed: (2,) the estimated belt speeds.
+          measured, predicted: (5,) the newest estimate (at its measurement time) and the state predicted
+          from it for when this action applies (the checked window's newest): the prediction's misses
+          (`MonitorConfig.miss_sigmas`); None: not checked.
         """
         m, limit = self.m, self.limit
-        self.log.append((t, float(errors[0]), float(errors[1]), float(sigma)))  # sigma as measured
+        miss = self._track(measured, predicted)
+        self.log.append((t, float(errors[0]), float(errors[1]), float(sigma), miss))  # sigma as measured
         still = self.rest.still(belt_speed)
         delay_var = 0.0 if still else self.delay_var  # the prediction's over the delay; exact at rest
+        if (
+            not still
+            and m.miss_sigmas > 0
+            and miss > m.miss_sigmas * math.sqrt(self.delay_var + 2 * sigma**2)
+        ):
+            delay_var = max(delay_var, miss**2)  # the model is failing here: its miss is its error
         sigma = math.sqrt(sigma**2 + delay_var)
         go_error = float(errors[0]) + m.k_sigma * sigma
         if m.shadow:
@@ -253,6 +286,15 @@ class Monitor:
         self.stopping_steps.add(t)
         return self._send(self._plan.popleft() if self._plan else np.zeros(4))
 
+    def _track(self, measured, predicted) -> float:
+        """Record this step's prediction and the miss of the one made `delay` steps ago for now (the newest
+        estimate is of that time); the largest |miss| of the last `miss_window` steps (m), 0 if none."""
+        if self.delay and measured is not None and predicted is not None:
+            if len(self._predicted) == self.delay:
+                self._misses.append(abs(balance_offset(measured) - self._predicted[0]))
+            self._predicted.append(balance_offset(predicted))
+        return max(self._misses, default=0.0)
+
     def _send(self, a) -> np.ndarray:
         a = np.asarray(a, np.float64)
         self.rest.sent(a)
@@ -279,6 +321,13 @@ class Monitor:
             "monitor_resumes": len(self.resumes),
             **({"monitor_would_stop": self.would_stop} if self.m.shadow else {}),
         }
+
+
+def balance_offset(s) -> float:
+    """(m) the signed balance error of the planar state s (5,): y_geom - (P1 + P2) / 2
+    (`geometry.balance_error` is its magnitude)."""
+    s = np.asarray(s, np.float64)
+    return float(s[geometry.Y] - 0.5 * (s[geometry.P1] + s[geometry.P2]))
 
 
 def crossing(balance_errors, limit: float, stopping_steps, guard_steps=()) -> tuple[bool, bool]:
