@@ -17,8 +17,12 @@ pose as boxjax's controller does under a noisy sensor (`control.state_estimate`)
 planar coordinate over the tracked poses, and the planner's window by `FilterConfig.window`'s rule (for a
 noisy sensor, the line through the newest estimate along the filter's velocity: differences of noisy
 poses would give the prior a velocity as wrong as the box's own; docs/results/faults.md). Without it the
-tracked poses go into the window as received. It does not yet predict over the pipeline's latency (the
-simulated controller does: `planning.compensate`).
+tracked poses go into the window as received.
+
+Given a model (`latency_model`, the planner's), the loop predicts the window over the vision pipeline's
+latency as the simulated controller does (`planning.compensate`, a Smith predictor): from the newest
+pose's stamp to now, through the actions it sent in between (as sent, after the adapter's clipping; a
+stop's as rest), so the planner and the monitor act on the state the command will meet.
 
 It stops (belts to 0 at the acceleration limit, carriages held) instead of planning when no observation
 was ever valid (`no_observation`: no carriage command then, the carriages keep their last target), when
@@ -57,6 +61,8 @@ from boxjax.robot.messages import CarriageCommand, JointState, TrackingFeedback,
 from boxjax.sim.faults import Faults
 
 LOOP_STOP_REASONS = (*STOP_REASONS, "no_observation", "invalid_observation")
+MAX_PREDICTED_STEPS = 20  # the longest latency (control steps) the loop predicts over (as `Faults`' bound)
+_compensate = jax.jit(planning.compensate)
 
 PlanStep = Callable[[planning.Observation], Any]  # observation -> action (4,) (v1, v2, dp1, dp2)
 
@@ -68,7 +74,9 @@ class PlannerStep:
     (`boxjax.control.monitor`; on by default, `monitor=MonitorConfig(enabled=False)` removes it) checks
     each action with the same model and replaces it by the controlled stop when the turn is about to
     lose the box. `sigma` (m): the standard deviation of the pose estimate's y the monitor assumes (the
-    robot's vision pipeline's; the loop's staleness stops are the adapter's). `stopped` and
+    robot's vision pipeline's; the loop's staleness stops are the adapter's); `delay`: the control steps
+    the loop predicts its observations over (`RobotLoop(latency_model=...)`), whose prediction error the
+    monitor adds (`MonitorConfig.delay_std`). `stopped` and
     `monitor.record()` say what it did."""
 
     def __init__(
@@ -80,11 +88,12 @@ class PlannerStep:
         cfg: Config = DEFAULT,
         monitor: MonitorConfig = MonitorConfig(),  # noqa: B008 (frozen)
         sigma: float = 0.0,
+        delay: int = 0,
     ):
         self.planner, self.model, self.key = planner, model, key
         self.plan_state = None
         self.cfg, self.sigma, self.t = cfg, float(sigma), 0
-        self.monitor = Monitor(cfg, monitor) if monitor.enabled else None
+        self.monitor = Monitor(cfg, monitor, delay) if monitor.enabled else None
 
     @property
     def stopped(self) -> bool:
@@ -125,6 +134,9 @@ class RobotLoop:
       turn: rad, the turn to make (TaskConfig.target_yaw_delta, pi / 2).
       pose_noise: (mm, degrees) std of the tracked pose (the vision pipeline's specification), or None:
         the poses are taken as exact. pose_filter: the filter's settings (`FilterConfig`).
+      latency_model: a model with `rollout_sequence` (the planner's) to predict the window over the
+        pipeline's latency, from the newest pose's stamp to `now` (whole control steps, at most
+        `MAX_PREDICTED_STEPS`); None: the window is the newest poses as they are.
     """
 
     def __init__(
@@ -137,6 +149,7 @@ class RobotLoop:
         window: int = planning.MIN_WINDOW,
         pose_noise: tuple[float, float] | None = None,
         pose_filter: FilterConfig = FilterConfig(),  # noqa: B008 (frozen)
+        latency_model=None,
     ):
         if window < planning.MIN_WINDOW:
             raise ValueError(f"window must be at least planning.MIN_WINDOW = {planning.MIN_WINDOW}")
@@ -157,6 +170,8 @@ class RobotLoop:
         self._belt_speed = np.zeros(2)
         self._stamp: float | None = None  # of the newest state in the window
         self._p_target: np.ndarray | None = None  # (P1, P2) m, the last carriage targets sent
+        self.latency_model = latency_model
+        self._sent: list[np.ndarray] = []  # the actions sent, newest last (at most MAX_PREDICTED_STEPS)
 
     @property
     def window(self) -> np.ndarray:
@@ -210,7 +225,7 @@ class RobotLoop:
         Returns (VelocityControl, CarriageCommand or None (no_observation only), status): status has
         safe_stop, reason (LOOP_STOP_REASONS or None), observation ("first", "new", "restarted",
         "repeated", "invalid"), error (the ValueError's text for "invalid"), and for planned commands the
-        adapter's age_s, clipped and action.
+        adapter's age_s, clipped and action, and predicted_steps (the latency predicted over, `predicted`).
         """
         try:
             seen, error = self.observe(tracking, joints), None
@@ -222,13 +237,37 @@ class RobotLoop:
         reason = stamp_problem(now, self._stamp, self.cfg)
         if reason is not None:
             return (*self._stop(), {"safe_stop": True, "reason": reason, "observation": seen, "error": None})
-        obs = planning.observation(planning.check_window(self.window), self._belt_speed, self.target_yaw)
-        action = self.plan_step(obs)
+        window, belt, ahead = self.predicted(now)
+        action = self.plan_step(planning.observation(window, belt, self.target_yaw))
         velocity, carriage, status = commands_from_action(action, self._p_target, now, self._stamp, self.cfg)
         self._p_target = carriage_targets(carriage, self.cfg)
-        return velocity, carriage, {**status, "observation": seen, "error": None}
+        self._remember(status["action"])
+        return velocity, carriage, {**status, "observation": seen, "error": None, "predicted_steps": ahead}
+
+    def predicted(self, now: float) -> tuple[np.ndarray, np.ndarray, int]:
+        """(window (W, 5), belt speeds (2,), steps): what the planner is given at `now`: the window and the
+        measured belt speeds, predicted over the whole control steps from the newest pose's stamp to now
+        with `latency_model` (`planning.compensate`) through the actions sent since; steps 0 without one."""
+        window = planning.check_window(self.window)
+        belt = np.asarray(self._belt_speed, np.float64)
+        steps = round((now - self._stamp) / self.cfg.gripper.control_dt)
+        steps = min(max(steps, 0), MAX_PREDICTED_STEPS)
+        if self.latency_model is None or steps == 0:
+            return window, belt, 0
+        flying = ([np.zeros(4)] * steps + self._sent)[-steps:]
+        w, b = _compensate(
+            self.latency_model,
+            np.asarray(window, np.float32),
+            np.asarray(belt, np.float32),
+            np.asarray(flying, np.float32),
+        )
+        return np.asarray(w, np.float64), np.asarray(b, np.float64), steps
+
+    def _remember(self, action) -> None:
+        self._sent = [*self._sent, np.asarray(action, np.float64)][-MAX_PREDICTED_STEPS:]
 
     def _stop(self) -> tuple[VelocityControl, CarriageCommand | None]:
+        self._remember(np.zeros(4))  # rest: the belts ramp to 0, the carriages hold
         if self._p_target is None:
             acc = self.cfg.belt_acceleration
             return VelocityControl(self.cfg.belt_joints, (0.0, 0.0), (acc, acc)), None
