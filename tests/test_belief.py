@@ -68,3 +68,29 @@ def test_ensemble_belief_refused_where_it_cannot_work():
 
     with pytest.raises(ValueError, match="oracle"):
         experiments.evaluate(cfg, 1, ctrl=controller.ControllerConfig(belief="ensemble"), progress=False)
+
+
+def test_the_default_h_is_chosen_by_the_sensor_the_exploration_was_seen_through(exploration):
+    """With no weights given, a perfect sensor's exploration (or one with latency alone) is read by the
+    H trained on exact explorations, a noisy or dropping one's by the H trained through randomised sensors;
+    given weights are used for every exploration."""
+    from boxjax.estimator.metrics import estimate
+    from boxjax.estimator.shipped import SHIPPED_WEIGHTS, sensor_estimator
+
+    traj, final = explore.trajectory(
+        exploration["s"], exploration["belt_speed"], explore.applied_actions(cfg)
+    )
+    by_exact = estimate(default_estimator(cfg), traj, final)["hazard_prob"]
+    by_sensor = estimate(sensor_estimator(cfg), traj, final)["hazard_prob"]
+    assert by_exact != by_sensor
+    h = controller.learned_estimator(cfg)
+    perfect = {"obs_noise_mm": 0.0, "drop_rate": 0.0}
+    assert h(exploration)["hazard_prob"] == by_exact
+    assert h({**exploration, "sensor": perfect})["hazard_prob"] == by_exact
+    for sensor in ({"obs_noise_mm": 3.0, "drop_rate": 0.0}, {"obs_noise_mm": 0.0, "drop_rate": 0.05}):
+        assert h({**exploration, "sensor": sensor})["hazard_prob"] == by_sensor
+    given = controller.learned_estimator(cfg, str(SHIPPED_WEIGHTS))
+    assert (
+        given({**exploration, "sensor": {"obs_noise_mm": 3.0, "drop_rate": 0.0}})["hazard_prob"] == by_exact
+    )
+    assert sensor_estimator(cfg).provenance["sensor_randomisation"]["p_perfect"] > 0

@@ -135,7 +135,6 @@ def test_estimator_eval_on_mjx(capsys):
         (["compare", "--methods", "pets", "--model-weights", "w.npz"], "is an option of --methods blackbox"),
         (["rotate", "--model", "pets", "--variant", "paper"], "--variant is an option of --model prior"),
         (["train-estimator", "--out", "x", "--boxes", "5"], "--boxes must be >= 10"),
-        (["train-estimator", "--out", "x", "--sensor-inputs"], "does nothing without --randomise-sensor"),
         (["calibrate", "--out", "x.npz", "--transitions", "4"], "--transitions must be >= 8"),
     ],
 )

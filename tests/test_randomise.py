@@ -42,13 +42,13 @@ def test_the_training_view_is_what_the_estimator_is_given_in_an_episode(faults):
     np.testing.assert_allclose(view_traj, np.asarray(expect), atol=1e-6)
     np.testing.assert_allclose(view_final, np.asarray(expect_final), atol=1e-6)
     assert not np.allclose(view_traj[:, :5], traj[:, :5], atol=1e-4)  # the sensor did change it
-    # and it is told the sensor, as H trained on the view is (`EstimatorConfig.sensor_inputs`)
+    # and it is told the sensor (the learned estimator chooses its H by it)
     assert given["sensor"] == {"obs_noise_mm": faults.obs_noise_mm, "drop_rate": faults.drop_rate}
 
 
 def test_the_estimator_is_told_the_sensor_the_controller_states():
     """The filter's stated noise, when set, is what the estimator is told; a perfect sensor tells nothing
-    (an H told the sensor reads that as a perfect one)."""
+    (the learned estimator reads that as a perfect one)."""
     import dataclasses
 
     from boxjax.control.state_estimate import FilterConfig

@@ -13,15 +13,19 @@ def _config_flag(config_path) -> str:
 
 
 def estimator_mismatch(cfg: Config, weights=None) -> list[str]:
-    """The fields (ESTIMATOR_FIELDS) where the config H was trained for differs from `cfg`; [] when it
-    fits or records no config (a checkpoint made outside `train_estimator`: its grid is still checked on
-    load)."""
+    """The fields (ESTIMATOR_FIELDS) where the config H was trained for (the shipped two, or `weights`)
+    differs from `cfg`; [] when it fits or records no config (a checkpoint made outside
+    `train_estimator`: its grid is still checked on load)."""
     from boxjax.estimator.io import load
-    from boxjax.estimator.shipped import SHIPPED_WEIGHTS
+    from boxjax.estimator.shipped import SHIPPED_SENSOR_WEIGHTS, SHIPPED_WEIGHTS
 
-    model = load(SHIPPED_WEIGHTS if weights is None else weights)
-    stored = model.provenance.get("config")
-    return [] if stored is None else differences(stored, cfg, ESTIMATOR_FIELDS)
+    out = []
+    for path in (SHIPPED_WEIGHTS, SHIPPED_SENSOR_WEIGHTS) if weights is None else (weights,):
+        stored = load(path).provenance.get("config")
+        out += (
+            [] if stored is None else [d for d in differences(stored, cfg, ESTIMATOR_FIELDS) if d not in out]
+        )
+    return out
 
 
 def require_models(

@@ -3,13 +3,12 @@ and the paper's tables. Every one takes --config, so a model can be made for ano
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import sys
 import time
 
 from boxjax.cli import models as cli_models
-from boxjax.cli.args import at_least, config_option, needs, option, when
+from boxjax.cli.args import at_least, config_option, option, when
 from boxjax.cli.episodes import load_config
 
 
@@ -31,10 +30,7 @@ def cmd_train_estimator(args) -> dict:
         from boxjax.training.randomise import SensorRandomisation
 
         sensor = SensorRandomisation()
-    est_cfg = dataclasses.replace(P.DEFAULT_ESTIMATOR, sensor_inputs=bool(args.sensor_inputs))
-    report = P.train_estimator(
-        args.seed, args.boxes, args.out, cfg, est_cfg=est_cfg, sensor=sensor, **_simulation(args)
-    )
+    report = P.train_estimator(args.seed, args.boxes, args.out, cfg, sensor=sensor, **_simulation(args))
     out = {"command": "train-estimator", "boxes": args.boxes, "seed": args.seed, "out": args.out, **report}
     return {**out, "config": args.config} if args.config else out
 
@@ -226,20 +222,11 @@ def add_parsers(sub) -> None:
     option(t, "--boxes", type=int, default=2000, check=at_least(10), help="random boxes (train + validation)")
     option(t, "--seed", type=int, default=0, help="PRNG seed of the data and the training")
     t.add_argument("--out", required=True, help="directory for dataset.npz, estimator.npz, report.json")
-    option(
-        t,
+    t.add_argument(
         "--randomise-sensor",
         action="store_true",
         help="train on the explorations seen through randomised sensors (0-5 mm pose noise, 0-20 %% dropped "
         "frames, a quarter perfect): keeps the hazard decision under sensor faults (docs/results/faults.md)",
-    )
-    option(
-        t,
-        "--sensor-inputs",
-        action="store_true",
-        used_by=(needs("randomise_sensor"),),
-        help="with --randomise-sensor: tell H each exploration's sensor (pose noise in mm, share of dropped "
-        "frames) as inputs; at run time the controller tells it its own (the faults' or the filter's)",
     )
     _simulation_options(t)
     config_option(t)

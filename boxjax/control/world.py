@@ -69,8 +69,8 @@ class World:
         self.model_motion = self.active and model_motion(pose_filter, faults)
         self._expected = None  # the model's prediction of the next frame (`expect`)
         self.state_window = self.active and state_window(pose_filter, faults)
-        # the sensor's specification as the controller states it (`estimator.SENSOR_INPUTS`: pose noise
-        # std in mm, the filter's if set, and the share of dropped frames), for an estimator told it
+        # the sensor's specification as the controller states it (pose noise std in mm, the filter's if
+        # set, and the share of dropped frames): the learned estimator chooses its H by it
         stated_mm = faults.obs_noise_mm if pose_filter.noise_mm is None else pose_filter.noise_mm
         self.sensor_spec = {"obs_noise_mm": float(stated_mm), "drop_rate": float(faults.drop_rate)}
         if not self.active:
@@ -131,11 +131,12 @@ class World:
         """The exploration as the estimator takes it, from the controller's record `data` (states and belt
         speeds seen, actions sent, `episode._controller_data`) of the fixed sequence's `n_steps` and the
         rest sent after it, with "sensor" the sensor's specification as the controller states it
-        (`sensor_spec`, for an H told it): the poses at their measurement times, a dropped frame (held:
-        its pose, the carriages and belt speeds stale) replaced by the straight line between the fresh
-        frames around it (the record is complete by now, so the estimator need not see a stale frame),
-        aligned with the actions that led to them (`explore.align`; a step cap that cut the rest short:
-        aligned by the frames that arrived). With a perfect sensor and no action latency: `data` itself."""
+        (`sensor_spec`: the learned estimator chooses its H by it): the poses at their measurement
+        times, a dropped frame (held: its pose, the carriages and belt speeds stale) replaced by the
+        straight line between the fresh frames around it (the record is complete by now, so the estimator
+        need not see a stale frame), aligned with the actions that led to them (`explore.align`; a step
+        cap that cut the rest short: aligned by the frames that arrived). With a perfect sensor and no
+        action latency: `data` itself."""
         if not self.frames:
             return data
         frames = {

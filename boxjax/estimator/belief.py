@@ -16,7 +16,7 @@ from boxjax.config import Config
 from boxjax.estimator import explore, hazard
 from boxjax.estimator.io import load
 from boxjax.estimator.metrics import estimate as estimate_with
-from boxjax.estimator.shipped import default_estimator
+from boxjax.estimator.shipped import default_estimator, imperfect_sensor, sensor_estimator
 
 
 def hazard_explanation(
@@ -49,33 +49,38 @@ def oracle_estimator(truth: massdist.MassDistribution, cfg: Config) -> dict:
 def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str = "physics"):
     """The learned H as a controller estimator: exploration dict -> {"distribution", "hazardous", ...}.
 
-    weights: an estimator checkpoint (default: the one shipped with boxjax). Raises CheckpointError for a
-    missing, corrupt or incompatible file.
+    weights: an estimator checkpoint, used for every exploration; None (default): the two shipped with
+    boxjax, chosen per exploration by the sensor it was seen through (its "sensor", `World.for_estimator`):
+    the H trained on exact explorations for a perfect sensor (or one with latency alone: the exploration
+    is aligned for it), the H trained through randomised sensors when the pose is noisy or frames drop
+    (`shipped.sensor_estimator`; trained on exact states, an H reads 3 mm of noise as a hazardous box:
+    docs/results/faults.md). Raises CheckpointError for a missing, corrupt or incompatible file.
     hazard_rule: "physics" (default: refuse when H's ensemble puts the centre of mass and the mass inside
     an outer quarter, or when H's hazard head says so; `boxjax.estimator.hazard`), "head" (the hazard head
-    alone, the
-    previous rule) or "physics_only". With a physics rule the dict also holds "hazard_explanation" (the
-    estimated centre of mass, its uncertainty and the region, in words), "hazard_margin" and
-    "hazard_region"; "hazard_prob" stays the head's probability.
+    alone, the previous rule) or "physics_only". With a physics rule the dict also holds
+    "hazard_explanation" (the estimated centre of mass, its uncertainty and the region, in words),
+    "hazard_margin" and "hazard_region"; "hazard_prob" stays the head's probability.
     """
     if hazard_rule not in hazard.HAZARD_RULES:
         choices = ", ".join(hazard.HAZARD_RULES)
         raise ValueError(f"unknown hazard rule {hazard_rule!r}; choose one of {choices}")
 
     model = default_estimator(cfg) if weights is None else load(weights, expected_box_config=cfg.box)
+    for_sensor = sensor_estimator(cfg) if weights is None else model  # loaded now: fails before any work
     applied = explore.applied_actions(cfg)
 
     def estimate(exploration: dict) -> dict:
+        sensor = exploration.get("sensor")  # the sensor's specification (`World.for_estimator`)
+        h = for_sensor if imperfect_sensor(sensor) else model
         if exploration["actions"].shape[0] != applied.shape[0]:
             raise ValueError(
                 f"the learned estimator needs the full {applied.shape[0]}-step exploration, got "
                 f"{exploration['actions'].shape[0]} steps (did the box leave the belts while exploring?)"
             )
         traj, final = explore.trajectory(exploration["s"], exploration["belt_speed"], applied)
-        sensor = exploration.get("sensor")  # the sensor's specification (`World.for_estimator`)
-        out = estimate_with(model, np.asarray(traj), np.asarray(final), sensor)
+        out = estimate_with(h, np.asarray(traj), np.asarray(final))
         if hazard_rule != "head":
-            a = hazard.assess(model, np.asarray(traj), np.asarray(final), hazard_rule, sensor=sensor)
+            a = hazard.assess(h, np.asarray(traj), np.asarray(final), hazard_rule)
             keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")
             out.update({k: a[k] for k in keys}, hazard_rule=hazard_rule)
         return out

@@ -90,14 +90,13 @@ class Evidence(NamedTuple):
     mass: jax.Array
 
 
-def member_predictions(model: E.EstimatorParams, traj: jax.Array, final: jax.Array, sensor=None):
-    """Each member's prediction for ONE trajectory (T, 11) + final (5,) (pure), seen through `sensor`
-    ((2,) `E.SENSOR_INPUTS`, for an H told it; None: a perfect one).
+def member_predictions(model: E.EstimatorParams, traj: jax.Array, final: jax.Array):
+    """Each member's prediction for ONE trajectory (T, 11) + final (5,) (pure).
 
     Returns (prob (K, nx, ny, nz) occupancy probabilities, mass (K,) kg, hazard (K,) head probabilities);
     `estimator.predict` is their mean (the mass floored after averaging).
     """
-    x = E.model_input(model, traj, final, sensor)
+    x = E._standardise(E.features(traj, final), model.norm)
     logits, mass_std, hazard_logit = jax.vmap(E._forward, in_axes=(0, None, None))(model.net, x, model.cfg)
     prob = jax.nn.sigmoid(logits).reshape((-1, *model.box.grid))
     mass = mass_std * model.norm.mass_std + model.norm.mass_mean
@@ -125,18 +124,13 @@ def evidence_from_members(prob: jax.Array, mass: jax.Array, hazard: jax.Array, b
     )
 
 
-def evidence(model: E.EstimatorParams, traj: jax.Array, final: jax.Array, sensor=None) -> Evidence:
+def evidence(model: E.EstimatorParams, traj: jax.Array, final: jax.Array) -> Evidence:
     """`Evidence` of H's ensemble on ONE exploration trajectory (pure; see `evidence_batch`)."""
-    return evidence_from_members(*member_predictions(model, traj, final, sensor), model.box)
+    return evidence_from_members(*member_predictions(model, traj, final), model.box)
 
 
-_evidence_batch = jax.jit(jax.vmap(evidence, in_axes=(None, 0, 0, 0)))
-
-
-def evidence_batch(model: E.EstimatorParams, traj, final, sensor=None) -> Evidence:
-    """traj (B, T, 11), final (B, 5), sensor (B, 2) or None (perfect sensors) -> Evidence with a leading
-    axis B (jitted)."""
-    return _evidence_batch(model, traj, final, sensor)
+# traj (B, T, 11), final (B, 5) -> Evidence with a leading axis B.
+evidence_batch = jax.jit(jax.vmap(evidence, in_axes=(None, 0, 0)))
 
 
 class Decision(NamedTuple):
@@ -244,10 +238,8 @@ def assess(
     final,
     hazard_rule: str = "physics",
     rule: PhysicsRule = DEFAULT_RULE,
-    sensor=None,
 ) -> dict:
-    """Host side, ONE validated trajectory (seen through `sensor`, `E.sensor_vector`; for an H told it):
-    {"hazardous" bool, "hazard_prob" float (the head's),
+    """Host side, ONE validated trajectory: {"hazardous" bool, "hazard_prob" float (the head's),
     "hazard_margin" float (`Decision.margin`), "hazard_region" str, "hazard_physics" bool, "hazard_head" bool,
     "hazard_explanation" str, "com" (3,) m, "com_std" (3,) m}. Raises ValueError on bad input (as
     `estimator.predict_checked`)."""
@@ -255,8 +247,7 @@ def assess(
     traj = np.asarray(traj, np.float32)
     final = np.asarray(final, np.float32)
     E._check_traj(traj, final, model.n_steps, batched=False)
-    s = E.sensor_vector(sensor)[None] if model.cfg.sensor_inputs else None
-    ev = jax.tree.map(lambda a: np.asarray(a)[0], evidence_batch(model, traj[None], final[None], s))
+    ev = jax.tree.map(lambda a: np.asarray(a)[0], evidence_batch(model, traj[None], final[None]))
     if not all(np.all(np.isfinite(a)) for a in ev):
         raise ValueError("the estimator produced a non-finite prediction (corrupt parameters?)")
     d = decide(model, ev, hazard_rule, rule)

@@ -17,7 +17,6 @@ from boxjax.config import BoxConfig
 from boxjax.estimator.net import (
     HEADS,
     N_STEP_FEATURES,
-    SENSOR_INPUTS,
     EstimatorConfig,
     EstimatorParams,
     Normaliser,
@@ -127,11 +126,10 @@ def load(path: str | os.PathLike, expected_box_config: BoxConfig | None = None) 
             f"{path}: unreadable checkpoint metadata (corrupt, or configs this boxjax does not know): "
             f"{type(e).__name__}: {e}"
         ) from e
-    if n_features != n_steps * N_STEP_FEATURES + len(SENSOR_INPUTS) * cfg.sensor_inputs:
-        told = f" and {len(SENSOR_INPUTS)} sensor inputs" if cfg.sensor_inputs else ""
+    if n_features != n_steps * N_STEP_FEATURES:
         raise CheckpointError(
             f"{path}: {n_features} features for {n_steps} steps; this boxjax builds "
-            f"{N_STEP_FEATURES} per step{told}"
+            f"{N_STEP_FEATURES} per step"
         )
     if expected_box_config is not None:
         if tuple(box.grid) != tuple(expected_box_config.grid):

@@ -19,11 +19,9 @@ from boxjax.estimator.net import (
     EstimatorParams,
     Prediction,
     _dataset_arrays,
-    dataset_sensors,
     predict_batch,
     predict_checked,
     predict_members,
-    sensor_vector,
     to_distribution,
 )
 from boxjax.massdist import MassDistribution, iou
@@ -75,13 +73,11 @@ def occupancy_hazard(prob: jax.Array, threshold, box: BoxConfig) -> jax.Array:
     return massdist.is_hazardous(to_distribution(prob, jnp.ones(()), threshold), box)
 
 
-def estimate(model: EstimatorParams, traj, final, sensor=None) -> dict:
+def estimate(model: EstimatorParams, traj, final) -> dict:
     """Everything the controller needs from ONE exploration trajectory (host side, validated input).
 
     Args:
       traj: (T, 11), final: (5,) as built by `boxjax.estimator.explore.trajectory` / `explore.run`.
-      sensor: the sensor's specification the exploration was seen through (`net.sensor_vector`; None: a
-        perfect sensor), for an H told it (`EstimatorConfig.sensor_inputs`); ignored by others.
     Returns:
       dict: "prob" (nx, ny, nz) numpy occupancy probabilities; "distribution" the MassDistribution
       thresholded at model.occupancy_threshold with the predicted total mass; "members" the same for
@@ -90,10 +86,9 @@ def estimate(model: EstimatorParams, traj, final, sensor=None) -> dict:
     Raises:
       ValueError for a trajectory of the wrong shape / length or with NaN / inf (`predict_checked`).
     """
-    prob, mass, hazard = predict_checked(model, traj, final, sensor)
+    prob, mass, hazard = predict_checked(model, traj, final)
     dist = to_distribution(jnp.asarray(prob), jnp.asarray(mass), model.occupancy_threshold)
-    s = jnp.asarray(sensor_vector(sensor)) if model.cfg.sensor_inputs else None
-    mem = _predict_members_jit(model, jnp.asarray(traj, jnp.float32), jnp.asarray(final, jnp.float32), s)
+    mem = _predict_members_jit(model, jnp.asarray(traj, jnp.float32), jnp.asarray(final, jnp.float32))
     members = [
         to_distribution(mem.prob[e], mem.mass[e], model.occupancy_threshold) for e in range(mem.mass.shape[0])
     ]
@@ -137,16 +132,8 @@ def thresholded_metrics(
 def chunked_predictions(model: EstimatorParams, dataset, chunk: int):
     """(Prediction of numpy arrays with a leading axis B, occ, mass), predicting in chunks of boxes."""
     traj, final, occ, mass = _dataset_arrays(dataset, model.box, model.n_steps)
-    sensors = dataset_sensors(dataset, len(traj)) if model.cfg.sensor_inputs else None
     parts = [
-        jax.device_get(
-            predict_batch(
-                model,
-                traj[i : i + chunk],
-                final[i : i + chunk],
-                None if sensors is None else sensors[i : i + chunk],
-            )
-        )
+        jax.device_get(predict_batch(model, traj[i : i + chunk], final[i : i + chunk]))
         for i in range(0, traj.shape[0], chunk)
     ]
     return Prediction(*(np.concatenate(arrays) for arrays in zip(*parts, strict=True))), occ, mass

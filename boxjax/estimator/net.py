@@ -27,9 +27,6 @@ N_ACTION = 4  # (v1, v2, dp1, dp2)
 N_STEP_FEATURES = 20  # see `features`
 N_TRAJ_COLUMNS = N_STATE + N_ACTION + 2  # + measured belt speeds (2)
 MIN_MASS = 1e-3  # kg, floor on a predicted total mass (mass properties need M > 0)
-# The sensor's specification an H trained with `EstimatorConfig.sensor_inputs` is told (its last inputs,
-# in this order): the pose noise std in mm and the share of dropped frames. (0, 0) is a perfect sensor.
-SENSOR_INPUTS = ("obs_noise_mm", "drop_rate")
 
 _ACTIVATIONS = {"gelu": jax.nn.gelu, "relu": jax.nn.relu, "tanh": jnp.tanh}
 
@@ -57,10 +54,6 @@ class EstimatorConfig:
     input_noise: float = 0.0  # std of gaussian noise added to the standardised features while training
     val_fraction: float = 0.15  # held-out share of the boxes (at least one box)
     members: int = 1  # ensemble size: independently initialised nets trained side by side (vmap)
-    # H is told the sensor's specification (`SENSOR_INPUTS`) as inputs beside the features, so that one H
-    # trained on explorations seen through randomised sensors (`training.randomise`) reads a perfect
-    # sensor's exploration sharply and a noisy one as well as it can, instead of averaging over sensors.
-    sensor_inputs: bool = False
     seed: int = 0  # used by `train` when no key is passed
 
     def __post_init__(self):
@@ -157,7 +150,7 @@ class EstimatorParams:
 
     @property
     def n_features(self) -> int:
-        return self.n_steps * N_STEP_FEATURES + (len(SENSOR_INPUTS) if self.cfg.sensor_inputs else 0)
+        return self.n_steps * N_STEP_FEATURES
 
 
 jax.tree_util.register_dataclass(
@@ -200,42 +193,6 @@ def features(traj: jax.Array, final: jax.Array) -> jax.Array:
         [ds, dx_box[:, None], dy_box[:, None], belts_rel, carriage_lag, belt_lag, pose, a], axis=1
     )
     return f.reshape(-1).astype(jnp.float32)
-
-
-def sensor_vector(sensor=None) -> np.ndarray:
-    """(2,) float32 [pose noise std in mm, share of dropped frames] (`SENSOR_INPUTS`) from a mapping with
-    those keys, a sequence of the two, or None (a perfect sensor). Raises ValueError for anything else."""
-    if sensor is None:
-        return np.zeros(len(SENSOR_INPUTS), np.float32)
-    if isinstance(sensor, Mapping):
-        sensor = [sensor.get(k, 0.0) for k in SENSOR_INPUTS]
-    v = np.asarray(sensor, np.float32)
-    if v.shape != (len(SENSOR_INPUTS),) or not np.all(np.isfinite(v)) or np.any(v < 0):
-        raise ValueError(
-            f"the sensor's specification must be {SENSOR_INPUTS}, finite and >= 0, got {sensor!r}"
-        )
-    return v
-
-
-def dataset_sensors(dataset, n: int) -> np.ndarray:
-    """(n, 2) float32 the sensor each of a dataset's n explorations was seen through (its `SENSOR_INPUTS`
-    arrays, as `training.randomise.sensor_view` writes them); zeros for a dataset of exact explorations."""
-    if all(k in dataset for k in SENSOR_INPUTS):
-        out = np.stack([np.asarray(dataset[k], np.float32) for k in SENSOR_INPUTS], axis=-1)
-        if out.shape != (n, len(SENSOR_INPUTS)):
-            raise ValueError(f"the dataset's sensor arrays must have shape ({n},), got {out.shape[:-1]}")
-        return out
-    return np.zeros((n, len(SENSOR_INPUTS)), np.float32)
-
-
-def model_input(model: EstimatorParams, traj: jax.Array, final: jax.Array, sensor=None) -> jax.Array:
-    """ONE exploration's standardised input to H's net: `features`, followed by the sensor's specification
-    (2,) when H was trained with it (`EstimatorConfig.sensor_inputs`; None: a perfect sensor)."""
-    x = features(traj, final)
-    if model.cfg.sensor_inputs:
-        s = jnp.zeros(len(SENSOR_INPUTS), jnp.float32) if sensor is None else jnp.asarray(sensor, jnp.float32)
-        x = jnp.concatenate([x, s])
-    return _standardise(x, model.norm)
 
 
 def init_members(key: jax.Array, n_features: int, n_voxels: int, cfg: EstimatorConfig) -> dict:
@@ -345,18 +302,17 @@ def _standardise(x: jax.Array, norm: Normaliser) -> jax.Array:
 # Prediction.
 
 
-def predict(model: EstimatorParams, traj: jax.Array, final: jax.Array, sensor=None) -> Prediction:
+def predict(model: EstimatorParams, traj: jax.Array, final: jax.Array) -> Prediction:
     """H on ONE exploration trajectory (pure; vmap over traj and final for batches).
 
     Args:
       model: a trained EstimatorParams.
       traj: (T, 11) with T == model.n_steps; final: (5,). Not validated here: see `predict_checked`.
-      sensor: (2,) the sensor's specification (`SENSOR_INPUTS`) for an H told it; None: a perfect one.
     Returns:
       Prediction(prob (nx, ny, nz) per-voxel occupancy probability, mass () kg floored at MIN_MASS,
       hazard () probability of a hazardous box), each the mean over the ensemble members.
     """
-    x = model_input(model, traj, final, sensor)
+    x = _standardise(features(traj, final), model.norm)
     logits, mass_std, hazard_logit = jax.vmap(_forward, in_axes=(0, None, None))(model.net, x, model.cfg)
     prob = jnp.mean(jax.nn.sigmoid(logits), axis=0)
     mass = jnp.mean(mass_std) * model.norm.mass_std + model.norm.mass_mean
@@ -364,29 +320,24 @@ def predict(model: EstimatorParams, traj: jax.Array, final: jax.Array, sensor=No
     return Prediction(prob.reshape(model.box.grid), jnp.maximum(mass, MIN_MASS), hazard)
 
 
-def predict_members(model: EstimatorParams, traj: jax.Array, final: jax.Array, sensor=None) -> Prediction:
+def predict_members(model: EstimatorParams, traj: jax.Array, final: jax.Array) -> Prediction:
     """H's ensemble members one by one on ONE trajectory: a Prediction whose fields have a leading axis
     of size cfg.members (`predict` is their mean). The members' spread is H's uncertainty about the box
     (the controller can plan over it: `ControllerConfig.belief = "ensemble"`)."""
-    x = model_input(model, traj, final, sensor)
+    x = _standardise(features(traj, final), model.norm)
     logits, mass_std, hazard_logit = jax.vmap(_forward, in_axes=(0, None, None))(model.net, x, model.cfg)
     prob = jax.nn.sigmoid(logits).reshape(-1, *model.box.grid)
     mass = jnp.maximum(mass_std.reshape(-1) * model.norm.mass_std + model.norm.mass_mean, MIN_MASS)
     return Prediction(prob, mass, jax.nn.sigmoid(hazard_logit).reshape(-1))
 
 
-_predict_batch = jax.jit(jax.vmap(predict, in_axes=(None, 0, 0, 0)))
+# Jitted `predict` over a batch: traj (B, T, 11), final (B, 5) -> Prediction with a leading axis B.
+predict_batch = jax.jit(jax.vmap(predict, in_axes=(None, 0, 0)))
 
 
-def predict_batch(model: EstimatorParams, traj, final, sensor=None) -> Prediction:
-    """Jitted `predict` over a batch: traj (B, T, 11), final (B, 5), sensor (B, 2) or None (perfect
-    sensors) -> Prediction with a leading axis B."""
-    return _predict_batch(model, traj, final, sensor)
-
-
-def predict_checked(model: EstimatorParams, traj, final, sensor=None) -> Prediction:
+def predict_checked(model: EstimatorParams, traj, final) -> Prediction:
     """Host-side `predict` that validates its input: one trajectory (T, 11) + (5,) or a batch (B, T, 11) +
-    (B, 5), and the sensor's specification (`sensor_vector`: one for all).
+    (B, 5).
 
     Raises ValueError for a wrong shape, a wrong number of steps (T != model.n_steps), NaN / inf, or a
     non-finite prediction; never returns a silent prediction on bad input.
@@ -399,13 +350,10 @@ def predict_checked(model: EstimatorParams, traj, final, sensor=None) -> Predict
         raise ValueError(f"trajectory and final state must be numeric arrays: {e}") from e
     batched = traj.ndim == 3
     _check_traj(traj, final, model.n_steps, batched=batched)
-    s = sensor_vector(sensor) if model.cfg.sensor_inputs else None
     if batched:
-        s = None if s is None else np.broadcast_to(s, (traj.shape[0], len(s)))
-        out = predict_batch(model, jnp.asarray(traj), jnp.asarray(final), s)
+        out = predict_batch(model, jnp.asarray(traj), jnp.asarray(final))
     else:
-        s = None if s is None else s[None]
-        one = predict_batch(model, jnp.asarray(traj)[None], jnp.asarray(final)[None], s)
+        one = predict_batch(model, jnp.asarray(traj)[None], jnp.asarray(final)[None])
         out = jax.tree.map(lambda a: a[0], one)
     out = Prediction(*(np.asarray(a) for a in out))
     if not all(np.all(np.isfinite(a)) for a in out):

@@ -1,5 +1,8 @@
-"""The estimator H shipped with boxjax (`boxjax/data/estimator.npz` and its report), loaded once per config
-and checked against the config's grid, box size and exploration sequence."""
+"""The estimators H shipped with boxjax, loaded once per config and checked against the config's grid, box
+size and exploration sequence: `boxjax/data/estimator.npz` (and its report), trained on the simulator's
+exact explorations, for a perfect sensor; `boxjax/data/estimator_sensor.npz` (and its report), trained on
+the same kind of explorations seen through randomised sensors (`boxjax.training.randomise`), for a camera's
+noisy pose and dropped frames (docs/results/faults.md)."""
 
 from __future__ import annotations
 
@@ -15,6 +18,8 @@ from boxjax.estimator.net import EstimatorParams
 
 SHIPPED_WEIGHTS = Path(__file__).parent.parent / "data" / "estimator.npz"
 SHIPPED_REPORT = Path(__file__).parent.parent / "data" / "estimator_report.json"
+SHIPPED_SENSOR_WEIGHTS = Path(__file__).parent.parent / "data" / "estimator_sensor.npz"
+SHIPPED_SENSOR_REPORT = Path(__file__).parent.parent / "data" / "estimator_sensor_report.json"
 
 
 def check_exploration(model: EstimatorParams, cfg: Config, path) -> None:
@@ -42,6 +47,19 @@ def default_estimator(cfg: Config = DEFAULT) -> EstimatorParams:
     box size and exploration sequence. Raises CheckpointError if the file is missing or incompatible
     (e.g. a config with another voxel grid: train one with `train_estimator`)."""
     return _load_default(str(SHIPPED_WEIGHTS), cfg)
+
+
+def sensor_estimator(cfg: Config = DEFAULT) -> EstimatorParams:
+    """The shipped H for an imperfect sensor (boxjax/data/estimator_sensor.npz), checked as
+    `default_estimator`."""
+    return _load_default(str(SHIPPED_SENSOR_WEIGHTS), cfg)
+
+
+def imperfect_sensor(sensor) -> bool:
+    """Whether the sensor's specification an exploration was seen through (`World.for_estimator`'s
+    "sensor": pose noise in mm, share of dropped frames; None: a perfect sensor) shows a noisy pose or
+    drops frames."""
+    return sensor is not None and (sensor.get("obs_noise_mm", 0) > 0 or sensor.get("drop_rate", 0) > 0)
 
 
 def default_estimator_cache_clear() -> None:

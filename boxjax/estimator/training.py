@@ -91,7 +91,6 @@ from boxjax.estimator.net import (
     _forward,
     _select_members,
     _standardise,
-    dataset_sensors,
     features,
     init_members,
 )
@@ -212,15 +211,6 @@ def _cached_train_epoch(cfg: EstimatorConfig, batch_size: int, box: BoxConfig | 
 _batched_features = jax.jit(jax.vmap(features))
 
 
-def _raw_inputs(cfg: EstimatorConfig, dataset, traj: np.ndarray, final: np.ndarray) -> jax.Array:
-    """(B, F) the net's unstandardised inputs for a dataset: the features, and for an H told the sensor
-    (`EstimatorConfig.sensor_inputs`) the sensor each exploration was seen through (`dataset_sensors`)."""
-    x = _batched_features(jnp.asarray(traj), jnp.asarray(final))
-    if cfg.sensor_inputs:
-        x = jnp.concatenate([x, jnp.asarray(dataset_sensors(dataset, len(traj)))], axis=1)
-    return x
-
-
 def _fit_normaliser(x: np.ndarray, mass: np.ndarray) -> Normaliser:
     """Statistics over the training rows. A feature (or mass) that never varies keeps std 1: dividing by a
     tiny std would blow up any test input that differs from the training constant."""
@@ -319,7 +309,7 @@ def train(
     key_split, key_init, key_epochs = jax.random.split(key, 3)
     train_index, val_index = _split_indices(key_split, traj.shape[0], cfg.val_fraction)
 
-    x_all = _raw_inputs(cfg, dataset, traj, final)
+    x_all = _batched_features(jnp.asarray(traj), jnp.asarray(final))
     norm = _fit_normaliser(np.asarray(x_all)[train_index], mass[train_index])
     train_data = _make_batch(x_all[train_index], occ[train_index], mass[train_index], norm, box)
     val_data = _make_batch(x_all[val_index], occ[val_index], mass[val_index], norm, box)
@@ -420,7 +410,9 @@ def losses(model: EstimatorParams, dataset) -> dict:
     "bce", "mass_mse" (standardised mass, as trained), "hazard_bce", "jaccard", "com_loss" and "iou" (mean,
     threshold 0.5), each the mean over the ensemble members (as in the training history)."""
     traj, final, occ, mass = _dataset_arrays(dataset, model.box, model.n_steps)
-    batch = _make_batch(_raw_inputs(model.cfg, dataset, traj, final), occ, mass, model.norm, model.box)
+    batch = _make_batch(
+        _batched_features(jnp.asarray(traj), jnp.asarray(final)), occ, mass, model.norm, model.box
+    )
     metrics = _member_metrics_jit(model.net, batch, _compile_key(model.cfg), model.box)
     return {k: float(np.mean(v)) for k, v in metrics.items()}
 
