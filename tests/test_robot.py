@@ -410,3 +410,23 @@ def test_given_a_model_the_loop_predicts_over_the_pipelines_latency(episode):
             errors[name].append(np.abs(given[t][2:4] - s_true[t][2:4]).max())
     late, predicted = np.median(errors["late"]), np.median(errors["predicted"])
     assert predicted < 0.5 * late, (predicted, late)  # measured: 1.7 mm against 4.3 mm (median)
+
+
+def test_the_monitor_of_a_loop_with_pose_noise_assumes_its_filters_uncertainty():
+    """A PlannerStep given no sigma, in a loop told the tracking's noise: its monitor's sigma is the
+    filter's y std each step (the stated 3 mm before the first frame, less once frames are averaged)."""
+    from boxjax import planning
+    from boxjax.control.monitor import MonitorConfig
+    from boxjax.robot import PlannerStep
+
+    planner = planning.Planner("rest", lambda obs: None, lambda key, model, obs, st: (np.zeros(4), st, None))
+    step = PlannerStep(planner, None, jax.random.PRNGKey(0), monitor=MonitorConfig(enabled=False))
+    loop = RobotLoop(step, pose_noise=(3.0, 1.5))
+    assert step.sigma() == pytest.approx(0.003)
+    for k in range(20):
+        loop.observe(tracking(stamp=10 + 0.05 * k), joints(stamp=10 + 0.05 * k))
+    assert 0 < step.sigma() < 0.003 and step.sigma() == loop.y_std()
+    fixed = PlannerStep(planner, None, jax.random.PRNGKey(0), sigma=0.002)
+    RobotLoop(fixed, pose_noise=(3.0, 1.5))
+    assert fixed.sigma == 0.002  # a sigma given is kept
+    assert RobotLoop(lambda obs: np.zeros(4)).y_std() == 0.0

@@ -73,8 +73,9 @@ class PlannerStep:
     per call, as `control.episode.run_episode` does; and, as there, the runtime safety monitor
     (`boxjax.control.monitor`; on by default, `monitor=MonitorConfig(enabled=False)` removes it) checks
     each action with the same model and replaces it by the controlled stop when the turn is about to
-    lose the box. `sigma` (m): the standard deviation of the pose estimate's y the monitor assumes (the
-    robot's vision pipeline's; the loop's staleness stops are the adapter's); `delay`: the control steps
+    lose the box. `sigma` (m, or a function giving it each step): the standard deviation of the pose
+    estimate's y the monitor assumes (the robot's vision pipeline's; a `RobotLoop` given the pose noise
+    links it to its filter's; the loop's staleness stops are the adapter's); `delay`: the control steps
     the loop predicts its observations over (`RobotLoop(latency_model=...)`), whose prediction error the
     monitor adds (`MonitorConfig.delay_std`). `stopped` and
     `monitor.record()` say what it did."""
@@ -87,12 +88,13 @@ class PlannerStep:
         *,
         cfg: Config = DEFAULT,
         monitor: MonitorConfig = MonitorConfig(),  # noqa: B008 (frozen)
-        sigma: float = 0.0,
+        sigma: float | Callable[[], float] = 0.0,
         delay: int = 0,
     ):
         self.planner, self.model, self.key = planner, model, key
         self.plan_state = None
-        self.cfg, self.sigma, self.t = cfg, float(sigma), 0
+        self.cfg, self.t = cfg, 0
+        self.sigma: float | Callable[[], float] = sigma if callable(sigma) else float(sigma)
         self.monitor = Monitor(cfg, monitor, delay) if monitor.enabled else None
 
     @property
@@ -115,8 +117,9 @@ class PlannerStep:
                 self.monitor.m.horizon,
                 self.monitor.m.backup,
             )
+            sigma = self.sigma() if callable(self.sigma) else self.sigma
             a = self.monitor.decide(
-                self.t, a, np.asarray(errors), np.asarray(stop), self.sigma, 0, np.asarray(obs.belt_speed)
+                self.t, a, np.asarray(errors), np.asarray(stop), sigma, 0, np.asarray(obs.belt_speed)
             )
         self.t += 1
         return a
@@ -133,7 +136,8 @@ class RobotLoop:
       target_yaw: rad in the conveyor frame; None: the first observed yaw + `turn`.
       turn: rad, the turn to make (TaskConfig.target_yaw_delta, pi / 2).
       pose_noise: (mm, degrees) std of the tracked pose (the vision pipeline's specification), or None:
-        the poses are taken as exact. pose_filter: the filter's settings (`FilterConfig`).
+        the poses are taken as exact. pose_filter: the filter's settings (`FilterConfig`). With a
+        `PlannerStep` whose sigma is 0, its monitor's sigma becomes the filter's (`y_std`).
       latency_model: a model with `rollout_sequence` (the planner's) to predict the window over the
         pipeline's latency, from the newest pose's stamp to `now` (whole control steps, at most
         `MAX_PREDICTED_STEPS`); None: the window is the newest poses as they are.
@@ -165,6 +169,8 @@ class RobotLoop:
         self._filter: PoseFilter | None = None
         self._state_line = self._sensor is not None and state_window(self._filter_settings, self._sensor)
         self.plan_step, self.cfg, self.turn, self.length = plan_step, cfg, float(turn), int(window)
+        if self._sensor is not None and isinstance(plan_step, PlannerStep) and plan_step.sigma == 0.0:
+            plan_step.sigma = self.y_std  # the monitor's margin: the filter's uncertainty, step by step
         self.target_yaw = None if target_yaw is None else float(target_yaw)
         self._window: list[np.ndarray] = []
         self._belt_speed = np.zeros(2)
@@ -182,6 +188,13 @@ class RobotLoop:
         if self._state_line and self._filter is not None and len(w):
             return state_line(w, self._filter).astype(np.float64)
         return w
+
+    def y_std(self) -> float:
+        """(m) the standard deviation of the estimated box y: the filter's (`PoseFilter.y_std`), the stated
+        noise before its first frame, 0 for poses taken as exact."""
+        if self._sensor is None:
+            return 0.0
+        return self._filter.y_std() if self._filter is not None else 1e-3 * self._sensor.obs_noise_mm
 
     @property
     def p_target(self) -> np.ndarray | None:
