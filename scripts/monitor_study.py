@@ -45,6 +45,8 @@ DELAY_STD = (0.0, 0.0018)  # m per sqrt(step): the prediction's error over the d
 # a miss of the prediction over the delay beyond this many of its expected std replaces that std
 # (MonitorConfig.miss_sigmas; 0: off)
 MISS_SIGMAS = (0.0, 2.0, 3.0, 4.0)
+# the delay's own multiplier (MonitorConfig.k_delay; None: k_sigma's)
+K_DELAY = (None, 2.0)
 
 
 def run_row(faults: Faults, n: int, seed: int) -> list[dict]:
@@ -74,11 +76,11 @@ def run_row(faults: Faults, n: int, seed: int) -> list[dict]:
     ]
 
 
-def _sigma(sig: float, miss: float, delay_var: float, miss_sigmas: float) -> float:
-    """The monitor's std of the predicted balance error (`Monitor.decide`, the gripper not at rest)."""
+def _margin(sig: float, miss: float, delay_var: float, k: float, k_delay: float, miss_sigmas: float) -> float:
+    """The monitor's margin on the predicted balance error (`Monitor.decide`, the gripper not at rest)."""
     if miss_sigmas > 0 and miss > miss_sigmas * np.sqrt(delay_var + 2 * sig**2):
         delay_var = max(delay_var, miss**2)
-    return float(np.sqrt(sig**2 + delay_var))
+    return float(np.sqrt((k * sig) ** 2 + k_delay**2 * delay_var))
 
 
 def analyse(
@@ -89,6 +91,7 @@ def analyse(
     delay: int = 0,
     window: int = 10,
     miss_sigmas: float = 0.0,
+    k_delay: float | None = None,
 ) -> dict:
     """The alarms a setting would raise, against each episode's true balance trace: a crossing is noticed
     when an alarm came within `window` steps before the action that led to it (the stop's horizon; an
@@ -98,9 +101,10 @@ def analyse(
     limit = CFG.task.balance_limit
     leads, unnoticed, onsets, needless, turned = [], 0, 0, 0, 0
     dvar = delay * delay_std**2
+    kd = k if k_delay is None else k_delay
     for ep in episodes:
         alarm = {
-            row[0]: row[1] + k * _sigma(row[3], row[4] if len(row) > 4 else 0.0, dvar, miss_sigmas)
+            row[0]: row[1] + _margin(row[3], row[4] if len(row) > 4 else 0.0, dvar, k, kd, miss_sigmas)
             >= stop_at * limit
             for row in ep["log"]
         }
@@ -123,6 +127,7 @@ def analyse(
         "k_sigma": k,
         "delay_std": delay_std,
         "miss_sigmas": miss_sigmas,
+        "k_delay": k_delay,
         "crossings": int(len(leads) + unnoticed),
         "unnoticed": unnoticed,
         "lead_steps_min": min(leads) if leads else None,
@@ -154,11 +159,12 @@ def main() -> None:
         eps = earlier[name] if earlier is not None else run_row(ROWS[name], args.boxes, args.seed)
         delay = ROWS[name].obs_latency + ROWS[name].action_latency  # what the controller predicts over
         table = [
-            analyse(eps, a, k, ds, delay, miss_sigmas=ms)
+            analyse(eps, a, k, ds, delay, miss_sigmas=ms, k_delay=kd)
             for ds in DELAY_STD
             for k in K_SIGMA
             for a in STOP_AT
             for ms in (MISS_SIGMAS if ds > 0 else (0.0,))
+            for kd in (K_DELAY if ds > 0 else (None,))
         ]
         wall = time.perf_counter() - t0
         raw[name] = eps

@@ -105,6 +105,7 @@ def test_monitor_settings_are_validated_by_name():
         ({"k_sigma": -1.0}, "k_sigma"),
         ({"max_stops": 0}, "max_stops"),
         ({"miss_sigmas": -1.0}, "miss_sigmas"),
+        ({"k_delay": -1.0}, "k_delay"),
         ({"miss_window": 0}, "miss_window"),
     ):
         with pytest.raises(ConfigError, match=name):
@@ -306,3 +307,16 @@ def test_a_prediction_that_misses_what_then_arrived_widens_the_margin():
     slipped, log = run(3.0, 0.015)
     assert slipped.index(True) == 5 and log[5][4] == pytest.approx(0.015, abs=1e-6)
     assert not any(run(0.0, 0.015)[0])  # off: delay_std's margin alone
+
+
+def test_the_estimates_and_the_delays_uncertainty_have_their_own_multipliers():
+    """margin = sqrt((k_sigma sigma)^2 + k_delay^2 delay delay_std^2), with 2.4 cm predicted, 3 mm of estimate
+    noise and 4 steps of delay at 2 mm per square-root step (4 mm), against a 3.2 cm threshold: (2, None):
+    2.4 + 1.0 stops; (1, 2): 2.4 + 0.85 stops; (1, 1.5): 2.4 + 0.67 goes on; (0, 2.2): 2.4 + 0.88 stops."""
+    go = np.array([0.024, 0.024])
+    for k_sigma, k_delay, stops in ((2.0, None, True), (1.0, 2.0, True), (1.0, 1.5, False), (0.0, 2.2, True)):
+        m = Monitor(
+            CFG, MonitorConfig(stop_at=0.8, k_sigma=k_sigma, k_delay=k_delay, delay_std=0.002), delay=4
+        )
+        m.decide(0, np.array([0.2, -0.2, 0.0, 0.0]), go, np.zeros((1, 4)), 0.003, 0, np.array([0.2, -0.2]))
+        assert m.stopped == stops, (k_sigma, k_delay)

@@ -73,6 +73,9 @@ class MonitorConfig:
     resume_below: float = 0.65  # predicted balance error (+ k_sigma std) under which a stop may resume
     horizon: int = 10  # control steps predicted: the action, then the stop (0.247 m/s to rest: 8 steps)
     k_sigma: float = 2.0  # standard deviations of the estimate's y uncertainty added to the error
+    # standard deviations of the prediction's error over the delay (`delay_std`, a miss) added with it (in
+    # quadrature); None: k_sigma
+    k_delay: float | None = None
     # The error of the model's prediction over the loop's delays (`planning.compensate`), m per square
     # root of a control step: 1.65 / 2.48 / 3.68 mm rms of balance error at 1 / 2 / 4 steps with the prior
     # on the true box (scripts/monitor_study.py, docs/results/faults.md).
@@ -111,6 +114,8 @@ class MonitorConfig:
         for name in ("k_sigma", "delay_std", "miss_sigmas"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
+        if self.k_delay is not None and not (math.isfinite(self.k_delay) and self.k_delay >= 0):
+            bad("k_delay", "must be a number >= 0 or None")
         for name in ("max_stops", "stop_timeout", "stale_steps", "miss_window"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
@@ -257,8 +262,8 @@ class Monitor:
             and miss > m.miss_sigmas * math.sqrt(self.delay_var + 2 * sigma**2)
         ):
             delay_var = max(delay_var, miss**2)  # the model is failing here: its miss is its error
-        sigma = math.sqrt(sigma**2 + delay_var)
-        go_error = float(errors[0]) + m.k_sigma * sigma
+        k_delay = m.k_sigma if m.k_delay is None else m.k_delay
+        go_error = float(errors[0]) + math.sqrt((m.k_sigma * sigma) ** 2 + k_delay**2 * delay_var)
         if m.shadow:
             if stale > m.stale_steps or go_error >= m.stop_at * limit:
                 self.would_stop.append(t)
