@@ -53,7 +53,7 @@ def _decide(m: Monitor, t: int, go: float, *, sigma=0.0, stale=0, belt=(0.2, -0.
 
 
 def test_the_monitor_stops_before_the_threshold_and_resumes_only_at_rest_and_well_inside():
-    m = Monitor(CFG, MonitorConfig(stop_at=0.75, resume_below=0.5))
+    m = Monitor(CFG, MonitorConfig(stop_at=0.75, resume_below=0.5, k_sigma=2.0))
     assert _decide(m, 0, 0.74 * LIMIT) == "go"
     assert _decide(m, 1, 0.70 * LIMIT, sigma=0.05 * LIMIT) == "stop"  # 0.7 + 2 x 0.05 >= 0.75
     assert m.stops == [(1, BALANCE)] and m.stopped

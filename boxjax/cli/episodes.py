@@ -561,7 +561,8 @@ def add_parsers(sub) -> None:
         r,
         "--weights",
         used_by=(no_replay, when("estimator", "learned")),
-        help="estimator checkpoint for --estimator learned (default: the one shipped with boxjax)",
+        help="estimator checkpoint for --estimator learned (default: the two shipped with boxjax, chosen by "
+        "the sensor)",
     )
     option(r, "--replay", metavar="DIR", help="re-run one box of `boxjax evaluate --out DIR` (with --index)")
     option(

@@ -71,8 +71,8 @@ def add_parsers(sub) -> None:
         p,
         "--weights",
         used_by=(when("estimator", "learned"),),
-        help="the learned H's checkpoint (default: the one shipped with boxjax), e.g. one trained with "
-        "train-estimator --randomise-sensor",
+        help="the learned H's checkpoint, used for every sensor (default: the two shipped with boxjax, "
+        "chosen by the sensor), e.g. one trained with train-estimator --randomise-sensor",
     )
     option(
         p,
