@@ -87,10 +87,11 @@ def test_the_default_h_is_chosen_by_the_sensor_the_exploration_was_seen_through(
     perfect = {"obs_noise_mm": 0.0, "drop_rate": 0.0}
     assert h(exploration)["hazard_prob"] == by_exact
     assert h({**exploration, "sensor": perfect})["hazard_prob"] == by_exact
+    assert h(exploration)["estimator_weights"] == "shipped"
     for sensor in ({"obs_noise_mm": 3.0, "drop_rate": 0.0}, {"obs_noise_mm": 0.0, "drop_rate": 0.05}):
-        assert h({**exploration, "sensor": sensor})["hazard_prob"] == by_sensor
+        out = h({**exploration, "sensor": sensor})
+        assert out["hazard_prob"] == by_sensor and out["estimator_weights"] == "shipped_sensor"
     given = controller.learned_estimator(cfg, str(SHIPPED_WEIGHTS))
-    assert (
-        given({**exploration, "sensor": {"obs_noise_mm": 3.0, "drop_rate": 0.0}})["hazard_prob"] == by_exact
-    )
+    out = given({**exploration, "sensor": {"obs_noise_mm": 3.0, "drop_rate": 0.0}})
+    assert out["hazard_prob"] == by_exact and out["estimator_weights"] == str(SHIPPED_WEIGHTS)
     assert sensor_estimator(cfg).provenance["sensor_randomisation"]["p_perfect"] > 0

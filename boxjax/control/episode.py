@@ -134,6 +134,8 @@ def episode_summary(
         summary["com_error_cm"] = float(com_error_cm(belief, truth, cfg.box))
         if est.get("hazard_prob") is not None:
             summary["hazard_prob"] = float(est["hazard_prob"])
+        if est.get("estimator_weights") is not None:  # which H read the exploration (`learned_estimator`)
+            summary["estimator_weights"] = est["estimator_weights"]
     safe_stop = None
     if monitor is not None and monitor.stopped and not final["success"] and not aborted:
         failed = final["done"]  # the true world ended the episode: a failure the stop did not prevent

@@ -59,7 +59,8 @@ def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str 
     an outer quarter, or when H's hazard head says so; `boxjax.estimator.hazard`), "head" (the hazard head
     alone, the previous rule) or "physics_only". With a physics rule the dict also holds
     "hazard_explanation" (the estimated centre of mass, its uncertainty and the region, in words),
-    "hazard_margin" and "hazard_region"; "hazard_prob" stays the head's probability.
+    "hazard_margin" and "hazard_region"; "hazard_prob" stays the head's probability. "estimator_weights"
+    names the H that read the exploration ("shipped", "shipped_sensor" or the path given).
     """
     if hazard_rule not in hazard.HAZARD_RULES:
         choices = ", ".join(hazard.HAZARD_RULES)
@@ -71,7 +72,9 @@ def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str 
 
     def estimate(exploration: dict) -> dict:
         sensor = exploration.get("sensor")  # the sensor's specification (`World.for_estimator`)
-        h = for_sensor if imperfect_sensor(sensor) else model
+        noisy = imperfect_sensor(sensor)
+        h = for_sensor if noisy else model
+        used = str(weights) if weights is not None else ("shipped_sensor" if noisy else "shipped")
         if exploration["actions"].shape[0] != applied.shape[0]:
             raise ValueError(
                 f"the learned estimator needs the full {applied.shape[0]}-step exploration, got "
@@ -83,7 +86,7 @@ def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str 
             a = hazard.assess(h, np.asarray(traj), np.asarray(final), hazard_rule)
             keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")
             out.update({k: a[k] for k in keys}, hazard_rule=hazard_rule)
-        return out
+        return {**out, "estimator_weights": used}
 
     return estimate
 
