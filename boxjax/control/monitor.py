@@ -4,8 +4,9 @@ the box's balance.
 Where it sits: the planner proposes an action; before it is sent the monitor asks the model in the
 planner's slot (the physics prior, W or PETS: whatever plans) what happens if the action is sent and the
 gripper then stops (a simplex architecture's backup controller, or a predictive safety filter's backup
-trajectory). If the predicted balance error over that horizon, plus `k_sigma` standard deviations of
-the state estimate's uncertainty about the box's y, reaches the stop threshold, the action is replaced
+trajectory). If the predicted balance error over that horizon, plus a margin (`k_sigma` standard
+deviations of the state estimate's uncertainty about the box's y and `k_delay` of the prediction's over
+the loop's delay, in quadrature), reaches the stop threshold, the action is replaced
 by the stop: a category-2 controlled stop in the industrial sense, power kept, the belts commanded to
 rest (the drives decelerate at their acceleration limit) and the carriages either held or moved together
 under the box's centre (`backup_set`; `MonitorConfig.backup` "best": whichever the model predicts
