@@ -54,10 +54,10 @@ ROWS = {
 }
 
 
-def _train(data: dict, path: str, seed: int, est_cfg: E.EstimatorConfig, provenance: dict) -> dict:
+def _train(data: dict, path: str, seed: int, provenance: dict) -> dict:
     t0 = time.perf_counter()
     model, history = E.train(
-        jax.random.PRNGKey(seed), data, est_cfg, box=CFG.box, progress=False, provenance=provenance
+        jax.random.PRNGKey(seed), data, DEFAULT_ESTIMATOR, box=CFG.box, progress=False, provenance=provenance
     )
     val = {k: v[history["val_index"]] for k, v in data.items()}
     model, calibration = E.calibrate(model, val, HAZARD_RECALL_TARGET)
@@ -164,7 +164,7 @@ def main() -> None:
                 "sensor_randomisation": None if name == "clean" else vars(SensorRandomisation()),
             }
             data_used = data if name == "clean" else view
-            report["training"][name] = _train(data_used, path, args.seed, DEFAULT_ESTIMATOR, provenance)
+            report["training"][name] = _train(data_used, path, args.seed, provenance)
             print(name, json.dumps(report["training"][name]), flush=True)
         weights[f"{name} ({args.boxes // 1000}k)"] = path
 

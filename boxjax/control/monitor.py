@@ -302,8 +302,8 @@ class Monitor:
         estimate is of that time); the largest |miss| of the last `miss_window` steps (m), 0 if none."""
         if self.delay and measured is not None and predicted is not None:
             if len(self._predicted) == self.delay:
-                self._misses.append(abs(balance_offset(measured) - self._predicted[0]))
-            self._predicted.append(balance_offset(predicted))
+                self._misses.append(abs(_offset(measured) - self._predicted[0]))
+            self._predicted.append(_offset(predicted))
         return max(self._misses, default=0.0)
 
     def _send(self, a) -> np.ndarray:
@@ -334,11 +334,8 @@ class Monitor:
         }
 
 
-def balance_offset(s) -> float:
-    """(m) the signed balance error of the planar state s (5,): y_geom - (P1 + P2) / 2
-    (`geometry.balance_error` is its magnitude)."""
-    s = np.asarray(s, np.float64)
-    return float(s[geometry.Y] - 0.5 * (s[geometry.P1] + s[geometry.P2]))
+def _offset(s) -> float:
+    return float(geometry.balance_offset(np.asarray(s, np.float64)))
 
 
 def crossing(balance_errors, limit: float, stopping_steps, guard_steps=()) -> tuple[bool, bool]:
