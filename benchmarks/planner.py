@@ -173,9 +173,8 @@ def _monitor(cfg, model, window, speed, target, keys, calls: int) -> dict:
         res[name] = {"compile_s": time.perf_counter() - t0, **_latency(fn, args_for, calls)}
 
     def step(i):  # the whole per-step cost as the episode loop pays it: check, to host, decide
-        errors, stop = monitor.check(cfg, model, window, speed, action, horizon)
-        a, e, st, b = (np.asarray(x) for x in (action, errors, stop, speed))
-        return mon.decide(i, a, e, st, 0.002, 0, b)
+        c = monitor.check(cfg, model, window, speed, action, horizon)
+        return mon.decide(i, np.asarray(action), monitor.to_host(c), 0.002, 0, np.asarray(speed))
 
     mon = monitor.Monitor(cfg, monitor.MonitorConfig(stop_at=1.0, resume_below=0.99))
     res["check_and_decide"] = _latency(step, lambda i: (i,), calls)

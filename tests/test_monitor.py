@@ -45,10 +45,20 @@ def test_the_stop_keeps_the_carriages_in_their_ranges():
     assert stop[:, 3].sum() > stop[:, 2].sum()  # the free carriage keeps moving the midline
 
 
+def _check(go, stop_plan=((0.0, 0.0, 0.0, 0.0),), *, now=None, end=None, go_stop=None) -> monitor.Check:
+    """A check whose action and stop are both predicted `go` (m), with the stop `stop_plan`; by default
+    the box is predicted to stay where it is (`now`, `end`: go's present and settled error)."""
+    stop_plan = np.asarray(stop_plan, np.float64).reshape(-1, 4)
+    now = go if now is None else now
+    end = now if end is None else end
+    go_stop = np.zeros_like(stop_plan) if go_stop is None else go_stop
+    return monitor.Check(*(np.asarray(x) for x in (go, go, now, go, end, stop_plan, go_stop)))
+
+
 def _decide(m: Monitor, t: int, go: float, *, sigma=0.0, stale=0, belt=(0.2, -0.2)):
     planned = np.array([0.2, -0.2, 0.0, 0.0])
     stop = np.array([0.0, 0.0, 0.01, 0.01])
-    out = m.decide(t, planned, np.array([go, go]), stop, sigma, stale, np.asarray(belt))
+    out = m.decide(t, planned, _check(go, stop), sigma, stale, np.asarray(belt))
     return "go" if np.array_equal(out, planned) else "stop"
 
 
@@ -126,17 +136,20 @@ def test_the_check_predicts_with_the_model_in_the_slot():
     window = planning.initial_window(_state(y=0.02))
     belt = jnp.zeros(2)
     rest = jnp.zeros(4)
-    errors, stop = monitor.check(CFG, prior, window, belt, rest, 10)
-    assert errors.shape == (2,) and np.all(np.asarray(errors) >= 0.02 - 1e-6)  # includes the present error
-    assert stop.shape == (10, 4)  # the stop's plan
-    _, centring = monitor.check(CFG, prior, window, belt, rest, 10, "recentre")
+    c = monitor.check(CFG, prior, window, belt, rest, 10)
+    assert float(c.now) == pytest.approx(0.02, abs=1e-6)
+    assert float(c.go) >= 0.02 - 1e-6 and float(c.stop) >= 0.02 - 1e-6  # both include the present error
+    assert float(c.go_ahead) <= float(c.go) and float(c.go_end) <= float(c.go_ahead)
+    assert c.stop_plan.shape == (10, 4) and c.go_stop.shape == (10, 4)  # the stops' plans
+    centring = monitor.check(CFG, prior, window, belt, rest, 10, "recentre").stop_plan
     np.testing.assert_allclose(np.asarray(centring)[0, 2:], STEP, rtol=1e-5)  # first step: 1 cm to the box
     # a batch of boxes gives each box's own check
     stacked = planning.stack([prior, prior])
-    errs_b, stops_b = monitor.check_batch(
+    cb = monitor.check_batch(
         CFG, stacked, jnp.stack([window, window]), jnp.stack([belt, belt]), jnp.stack([rest, rest]), 10
     )
-    np.testing.assert_allclose(np.asarray(errs_b)[0], np.asarray(errors), atol=1e-6)
+    for one, field in zip(monitor.to_host(cb, 0), monitor.to_host(c), strict=True):
+        np.testing.assert_allclose(one, field, atol=1e-6)
 
 
 def test_compensation_moves_the_window_over_the_actions_in_flight():
@@ -204,13 +217,15 @@ def test_best_is_the_safer_of_the_two_stops_by_the_models_prediction():
         window, belt = planning.initial_window(s), jnp.asarray([0.1, -0.1], jnp.float32)
         act = jnp.asarray([0.1, -0.1, 0.0, 0.0], jnp.float32)
         each = {b: monitor.check(CFG, prior, window, belt, act, 10, b) for b in monitor.BACKUPS}
-        errors, stop = monitor.check(CFG, prior, window, belt, act, 10, "best")
-        np.testing.assert_allclose(
-            np.asarray(errors), np.minimum(*(np.asarray(e) for e, _ in each.values())), atol=1e-6
-        )
-        chosen = [b for b in each if np.allclose(np.asarray(stop), np.asarray(each[b][1]), atol=1e-7)]
-        assert chosen, stop  # one of the two stops' first actions
-        assert min(float(each[b][0][1]) for b in chosen) <= float(errors[1]) + 1e-6  # the safer one
+        c = monitor.check(CFG, prior, window, belt, act, 10, "best")
+        for field in ("go", "stop"):
+            best = min(float(getattr(e, field)) for e in each.values())
+            assert float(getattr(c, field)) == pytest.approx(best, abs=1e-6)
+        chosen = [
+            b for b in each if np.allclose(np.asarray(c.stop_plan), np.asarray(each[b].stop_plan), atol=1e-7)
+        ]
+        assert chosen, c.stop_plan  # one of the two stops
+        assert min(float(each[b].stop) for b in chosen) <= float(c.stop) + 1e-6  # the safer one
 
 
 @pytest.mark.parametrize("name", ["uniform", "A", "C"])
@@ -250,13 +265,12 @@ def test_at_rest_the_prediction_over_the_delay_adds_no_uncertainty():
     while the gripper moves; after delay + 1 steps of rest sent with the belts at rest, the prediction
     over the delay is exact and the same 2 cm does not stop it."""
     settings = MonitorConfig(stop_at=0.75, k_sigma=2.0, delay_std=0.004)
-    go = np.array([0.5 * LIMIT] * 2)
-    calm, stop = np.zeros(2), np.zeros((1, 4))
+    go, calm = _check(0.5 * LIMIT), _check(0.0)
     for first, expect in ((np.zeros(4), False), (np.array([0.05, 0.05, 0.0, 0.0]), True)):
         m = Monitor(CFG, settings, delay=4)
         for t in range(5):
-            m.decide(t, first, calm, stop, 0.0, 0, np.zeros(2))
-        m.decide(5, np.array([0.1, -0.1, 0.0, 0.0]), go, stop, 0.0, 0, np.zeros(2))
+            m.decide(t, first, calm, 0.0, 0, np.zeros(2))
+        m.decide(5, np.array([0.1, -0.1, 0.0, 0.0]), go, 0.0, 0, np.zeros(2))
         assert m.stopped == expect
 
 
@@ -267,10 +281,9 @@ def test_a_stop_follows_its_plan_then_rests_and_resumes_only_once_rest_is_observ
     m = Monitor(CFG, MonitorConfig(), delay=2)
     planned = np.array([0.1, -0.1, 0.0, 0.0])
     plan = np.array([[0.0, 0.0, 0.01, 0.01], [0.0, 0.0, 0.005, 0.005]])
-    calm, alarm = np.array([0.0, 0.0]), np.array([LIMIT, LIMIT])
-    out = [m.decide(0, planned, alarm, plan, 0.0, 0, np.array([0.1, -0.1]))]
+    out = [m.decide(0, planned, _check(LIMIT, plan), 0.0, 0, np.array([0.1, -0.1]))]
     for t in range(1, 8):
-        out.append(m.decide(t, planned, calm, plan * 0, 0.0, 0, np.zeros(2)))
+        out.append(m.decide(t, planned, _check(0.0, plan * 0), 0.0, 0, np.zeros(2)))
     np.testing.assert_array_equal(out[0], plan[0])
     np.testing.assert_array_equal(out[1], plan[1])
     for t in range(2, 5):  # rest: 3 = delay + 1 steps of it before the gripper counts as known at rest
@@ -284,8 +297,8 @@ def test_a_prediction_that_misses_what_then_arrived_widens_the_margin():
     the estimate that arrives at t + 2 (of that time). While the predictions come true the margin is
     `delay_std`'s; a 1.5 cm miss (the box slipped) is far beyond it, and for `miss_window` steps it is the
     prediction's std: the same 2 cm predicted error now stops the turn. With miss_sigmas = 0 it does not."""
-    planned, stop = np.array([0.2, -0.2, 0.0, 0.0]), np.zeros((1, 4))
-    go = np.array([0.5 * LIMIT] * 2)  # 2 cm
+    planned = np.array([0.2, -0.2, 0.0, 0.0])
+    go = _check(0.5 * LIMIT)  # 2 cm
     moving = np.array([0.2, -0.2])
 
     def run(miss_sigmas: float, slip: float) -> list[bool]:
@@ -297,7 +310,7 @@ def test_a_prediction_that_misses_what_then_arrived_widens_the_margin():
             truth = 0.001 * t + (slip if t >= 5 else 0.0)  # the box's offset; it jumps at t = 5
             measured = np.asarray(_state(y=truth - 0.002))  # the estimate is of 2 steps ago
             predicted = np.asarray(_state(y=0.001 * t))  # the model foresaw no slip
-            m.decide(t, planned, go, stop, 0.001, 0, moving, measured=measured, predicted=predicted)
+            m.decide(t, planned, go, 0.001, 0, moving, measured=measured, predicted=predicted)
             stopped.append(m.stopped)
         return stopped, m.log
 
@@ -313,10 +326,56 @@ def test_the_estimates_and_the_delays_uncertainty_have_their_own_multipliers():
     """margin = sqrt((k_sigma sigma)^2 + k_delay^2 delay delay_std^2), with 2.4 cm predicted, 3 mm of estimate
     noise and 4 steps of delay at 2 mm per square-root step (4 mm), against a 3.2 cm threshold: (2, None):
     2.4 + 1.0 stops; (1, 2): 2.4 + 0.85 stops; (1, 1.5): 2.4 + 0.67 goes on; (0, 2.2): 2.4 + 0.88 stops."""
-    go = np.array([0.024, 0.024])
+    go = _check(0.024)
     for k_sigma, k_delay, stops in ((2.0, None, True), (1.0, 2.0, True), (1.0, 1.5, False), (0.0, 2.2, True)):
         m = Monitor(
             CFG, MonitorConfig(stop_at=0.8, k_sigma=k_sigma, k_delay=k_delay, delay_std=0.002), delay=4
         )
-        m.decide(0, np.array([0.2, -0.2, 0.0, 0.0]), go, np.zeros((1, 4)), 0.003, 0, np.array([0.2, -0.2]))
+        m.decide(0, np.array([0.2, -0.2, 0.0, 0.0]), go, 0.003, 0, np.array([0.2, -0.2]))
         assert m.stopped == stops, (k_sigma, k_delay)
+
+
+def test_a_box_at_rest_between_the_thresholds_is_recovered_by_actions_predicted_to_centre_it():
+    """A balance stop whose box came to rest at 2.9 cm (above `resume_below`'s 2.6, under `stop_at`'s 3.2)
+    cannot resume; it sends the planner's action when the model predicts that, with its stop, it brings
+    the box at least `recover_gain` closer to the middle without passing 3.2 cm, then that stop, then
+    rest; an action predicted to gain too little, or to pass the threshold on the way, is not sent. A
+    crossing a recovery leads to is not a stop's: `stopping_steps` leaves the recovery's steps out."""
+    planned = np.array([0.05, -0.05, 0.004, 0.0])
+    then = np.array([[0.0, 0.0, 0.002, 0.0], [0.0, 0.0, 0.001, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    m = Monitor(CFG, MonitorConfig(recover_gain=0.001), delay=1)
+    rest, moving = np.zeros(2), np.array([0.1, -0.1])
+    assert not np.array_equal(m.decide(0, planned, _check(0.034), 0.0, 0, moving), planned)  # stop
+    for t in (1, 2):  # rest sent; at rest from t = 2 (delay + 1 steps of it)
+        m.decide(t, planned, _check(0.029), 0.0, 0, rest)
+    m.recoveries.clear()
+    assert m.stopped and not m.resumes
+    # too little gain (0.5 mm), or 3.3 cm on the way: kept at rest
+    for c in (
+        _check(0.029, end=0.0285),
+        monitor.Check(
+            *_check(0.033, now=0.029, end=0.020)[:3],
+            np.asarray(0.033),
+            *_check(0.033, now=0.029, end=0.020)[4:],
+        ),
+    ):
+        np.testing.assert_array_equal(m.decide(3, planned, c, 0.0, 0, rest), 0.0)
+    assert m.recoveries == []
+    # predicted 2.9 -> 2.7 cm, never above 3.0: sent, then the stop it was checked with, then rest
+    good = _check(0.030, now=0.029, end=0.027, go_stop=np.vstack([then, np.zeros((1, 4))]))
+    out = [m.decide(4, planned, good, 0.0, 0, rest)]
+    out += [m.decide(t, planned, _check(0.029), 0.0, 0, moving) for t in (5, 6, 7)]
+    np.testing.assert_array_equal(out[0], planned)
+    np.testing.assert_array_equal(np.stack(out[1:]), then)
+    assert m.recoveries == [4] and m.stopped and not m.resumes
+    assert not {4, 5, 6, 7} & m.stopping_steps  # the recovery and its stop: not a stop's steps
+    assert m.record()["monitor_recoveries"] == 1
+    # once at rest again inside resume_below, the turn resumes as after any stop
+    for t in (8, 9):
+        m.decide(t, planned, _check(0.025), 0.0, 0, rest)
+    assert m.resumes == [9] and not m.stopped
+    # off: the same box waits out the timeout
+    off = Monitor(CFG, MonitorConfig(recover=False, stop_timeout=6), delay=1)
+    off.decide(0, planned, _check(0.034), 0.0, 0, moving)
+    sent = [off.decide(t, planned, good, 0.0, 0, rest) for t in range(1, 8)]
+    assert not any(np.array_equal(a, planned) for a in sent) and off.final and off.ended

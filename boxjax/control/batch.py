@@ -422,11 +422,11 @@ def run_episodes(
             actions = np.asarray(actions, np.float64)
             ms = 1e3 * (time.perf_counter() - t0)
             if ctrl.monitor.enabled:  # the runtime safety monitor, all slots in one call
-                errors, stops = monitor.check_batch(
+                checks = monitor.check_batch(
                     cfg, model_b, obs_b.window, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
                     ctrl.monitor.horizon, ctrl.monitor.backup,
                 )  # fmt: skip
-                errors, stops, belts = np.asarray(errors), np.asarray(stops), np.asarray(obs_b.belt_speed)
+                checks, belts = monitor.to_host(checks), np.asarray(obs_b.belt_speed)
                 newest = np.asarray(obs_b.window[:, -1])  # predicted for when the actions apply
             full = np.zeros((B, 4))
             active = np.zeros(B, bool)
@@ -440,8 +440,8 @@ def run_episodes(
                 a, r = actions[k], rec[b]
                 if r.monitor is not None:
                     a = r.monitor.decide(
-                        len(r.actions), a, errors[k], stops[k], r.world.y_std(), r.world.stale, belts[k],
-                        measured=windows[b][-1], predicted=newest[k],
+                        len(r.actions), a, monitor.to_host(checks, k), r.world.y_std(), r.world.stale,
+                        belts[k], measured=windows[b][-1], predicted=newest[k],
                     )  # fmt: skip
                 full[b], active[b] = r.send(sim, b, a), True
                 r.plan_ms.append(ms)

@@ -283,7 +283,7 @@ def run_episode(
             if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
                 raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
             if mon is not None:  # the runtime safety monitor: send the action, or stop
-                errors, stop_a = monitor.check(
+                check = monitor.check(
                     cfg,
                     model,
                     obs.window,
@@ -295,8 +295,7 @@ def run_episode(
                 a = mon.decide(
                     len(actions),
                     a,
-                    np.asarray(errors),
-                    np.asarray(stop_a),
+                    monitor.to_host(check),
                     world.y_std(),
                     world.stale,
                     np.asarray(obs.belt_speed),

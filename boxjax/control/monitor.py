@@ -21,6 +21,12 @@ A stop is a state, not an end:
   the estimate is observed, not predicted through the stop's own carriage moves) and the planner's next
   step and stop are predicted within `resume_below` (hysteresis: below `stop_at`), the turn resumes.
   An episode that resumes and finishes is a success.
+* A box that came to rest between the two thresholds cannot resume (its present error alone is above
+  `resume_below`); it is recovered instead (`MonitorConfig.recover`): at rest, the planner's action is
+  sent when the model predicts that it, followed by a stop, brings the box `recover_gain` closer to the
+  middle without passing `stop_at` on the way; then that stop, then rest again, until the box rests
+  inside `resume_below` and the turn resumes. The stop still counts toward `stop_timeout`, and a
+  crossing a recovery leads to counts as unnoticed.
 * The `max_stops`-th balance stop is final, as is a stop that cannot resume within `stop_timeout`
   control steps: the gripper comes to rest, the episode ends `safe_stop` with its reason, kept apart
   from failures (`REASONS`).
@@ -42,6 +48,7 @@ import dataclasses
 import math
 from collections import deque
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -94,6 +101,12 @@ class MonitorConfig:
     # nothing to check.
     miss_sigmas: float = 0.0
     miss_window: int = 5
+    # Recovery: a balance stop at rest above `resume_below` sends the planner's action (then the stop
+    # the check paired with it) when the model predicts it brings the box at least `recover_gain` (m)
+    # closer to the middle and never above `stop_at` (with the estimate's margin), so that a box that came
+    # to rest between the two thresholds is brought back inside instead of waiting out `stop_timeout`.
+    recover: bool = True
+    recover_gain: float = 0.001
     max_stops: int = 60  # the max_stops-th balance stop is final
     stop_timeout: int = 100  # control steps (5 s) a stop may last without resuming before it is final
     stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
@@ -117,7 +130,9 @@ class MonitorConfig:
             bad("resume_below", "must be a fraction of the balance limit in (0, stop_at)")
         if not (isinstance(self.horizon, int) and 1 <= self.horizon <= 40):
             bad("horizon", "must be a whole number of control steps in [1, 40]")
-        for name in ("k_sigma", "delay_std", "miss_sigmas"):
+        if not isinstance(self.recover, bool):
+            bad("recover", "must be true or false")
+        for name in ("k_sigma", "delay_std", "miss_sigmas", "recover_gain"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
         if self.k_delay is not None and not (math.isfinite(self.k_delay) and self.k_delay >= 0):
@@ -165,13 +180,25 @@ def backup_set(cfg: Config, s, n: int, backup: str = "best") -> jax.Array:
     return jnp.stack([backup_actions(cfg, s, n, recentre=name == "recentre") for name in names])
 
 
+class Check(NamedTuple):
+    """What the monitor's model predicts for the planner's action (`predicted_errors`), one box; distances
+    in m (balance errors). A batch (`check_batch`) has a leading box axis on every field."""
+
+    go: jax.Array  # () the largest balance error, now and over the horizon, of the action then a stop
+    stop: jax.Array  # () the same for a stop at once
+    now: jax.Array  # () the window's newest balance error (the state at which the action applies)
+    go_ahead: jax.Array  # () go's largest over the predicted steps alone (without now)
+    go_end: jax.Array  # () go's balance error at the horizon's end, once its stop has played out
+    stop_plan: jax.Array  # (horizon, 4) the stop predicted safest at once (a stop issued now sends it)
+    go_stop: jax.Array  # (horizon, 4) the stop that follows the action in `go` (its first horizon - 1)
+
+
 def predicted_errors(
     cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best"
-) -> tuple[jax.Array, jax.Array]:
-    """((2,) m, (horizon, 4)): the largest balance error, now (the window's newest state) and over
-    `horizon` predicted steps, of (a) `action` followed by a stop and (b) a stop at once, each with the
-    stop of `backup_set` predicted safest; and the stop predicted safest at once (the plan a stop issued
-    now follows: `Monitor`)."""
+) -> Check:
+    """The largest balance error, now (the window's newest state) and over `horizon` predicted steps, of
+    (a) `action` followed by a stop and (b) a stop at once, each with the stop of `backup_set` predicted
+    safest, and those stops (a `Check`)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
@@ -179,14 +206,24 @@ def predicted_errors(
     states = rollout(window, belt_speed, jnp.concatenate([go, backups]))  # (2V, horizon, 5)
     errors = jax.vmap(jax.vmap(geometry.balance_error))(states)
     errors = jnp.where(jnp.isfinite(errors), errors, jnp.inf)  # a model that diverges is not believed safe
-    worst = jnp.max(errors, axis=1).reshape(2, -1)  # (go | stop, V)
+    errors = errors.reshape(2, -1, horizon)  # (go | stop, V, horizon)
+    worst = jnp.max(errors, axis=2)  # (go | stop, V)
+    go_b, stop_b = jnp.argmin(worst[0]), jnp.argmin(worst[1])
     now = geometry.balance_error(window[-1])
-    return jnp.maximum(jnp.min(worst, axis=1), now), backups[jnp.argmin(worst[1])]
+    return Check(
+        go=jnp.maximum(worst[0, go_b], now),
+        stop=jnp.maximum(worst[1, stop_b], now),
+        now=now,
+        go_ahead=worst[0, go_b],
+        go_end=errors[0, go_b, -1],
+        stop_plan=backups[stop_b],
+        go_stop=backups[go_b],
+    )
 
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
-def check(cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best"):
-    """Jitted `predicted_errors`: ((2,) go and stop errors, (horizon, 4) the safest stop's plan)."""
+def check(cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best") -> Check:
+    """Jitted `predicted_errors`."""
     return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup)
 
 
@@ -196,6 +233,11 @@ def check_batch(cfg: Config, models, windows, belt_speeds, actions, horizon: int
     return jax.vmap(partial(predicted_errors, cfg, horizon=horizon, backup=backup))(
         models, windows, belt_speeds, actions
     )
+
+
+def to_host(c: Check, k: int | None = None) -> Check:
+    """The check as numpy (box k of a batch's)."""
+    return Check(*(np.asarray(x if k is None else x[k]) for x in c))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -218,6 +260,10 @@ class Monitor:
         self.mode, self.reason = RUN, None
         self.stops: list[tuple[int, str]] = []  # (control step, reason) of every stop issued
         self.resumes: list[int] = []
+        self.recoveries: list[
+            int
+        ] = []  # control steps at which a stop sent a recovery (`MonitorConfig.recover`)
+        self._recovering = False  # from a recovery until the gripper is known at rest again
         self.balance_stops = 0
         self.stopped_for = 0
         self.final = False
@@ -237,8 +283,7 @@ class Monitor:
         self,
         t: int,
         action,
-        errors,
-        stop_plan,
+        check: Check,
         sigma: float,
         stale: int,
         belt_speed,
@@ -248,8 +293,8 @@ class Monitor:
         """The action to send at control step t.
 
         Args:
-          action: the planner's (4,). errors: (2,) `predicted_errors` (go, stop). stop_plan: (n, 4) the
-          stop predicted safest from now (`predicted_errors`): a stop issued now sends it, then rest.
+          action: the planner's (4,). check: `predicted_errors` for it, on the host (`to_host`): a stop
+          issued now sends its `stop_plan`, then rest.
           sigma: the std of the estimate's y at its measurement (m; the prediction's over the delay is
           added, `delay_std`, unless the gripper is known at rest); stale: control steps since the
           last fresh frame; belt_speed: (2,) the estimated belt speeds.
@@ -259,8 +304,9 @@ class Monitor:
         """
         m, limit = self.m, self.limit
         miss = self._track(measured, predicted)
-        self.log.append((t, float(errors[0]), float(errors[1]), float(sigma), miss))  # sigma as measured
+        self.log.append((t, float(check.go), float(check.stop), float(sigma), miss))  # sigma as measured
         still = self.rest.still(belt_speed)
+        self._recovering = self._recovering and not still
         delay_var = 0.0 if still else self.delay_var  # the prediction's over the delay; exact at rest
         if (
             not still
@@ -269,7 +315,8 @@ class Monitor:
         ):
             delay_var = max(delay_var, miss**2)  # the model is failing here: its miss is its error
         k_delay = m.k_sigma if m.k_delay is None else m.k_delay
-        go_error = float(errors[0]) + math.sqrt((m.k_sigma * sigma) ** 2 + k_delay**2 * delay_var)
+        margin = math.sqrt((m.k_sigma * sigma) ** 2 + k_delay**2 * delay_var)
+        go_error = float(check.go) + margin
         if m.shadow:
             if stale > m.stale_steps or go_error >= m.stop_at * limit:
                 self.would_stop.append(t)
@@ -277,7 +324,7 @@ class Monitor:
         if self.mode == RUN:
             why = STALE if stale > m.stale_steps else (BALANCE if go_error >= m.stop_at * limit else None)
             if why is not None:
-                self._stop(t, why, stop_plan)
+                self._stop(t, why, check.stop_plan)
         else:
             self.stopped_for += 1
             if not self.final:
@@ -288,14 +335,29 @@ class Monitor:
                 if can_go:
                     self.mode, self.reason = RUN, None
                     self.resumes.append(t)
+                elif self.reason == BALANCE and still and m.recover and self._recovers(check, margin):
+                    self.recoveries.append(t)
+                    self._recovering = True
+                    self._plan = deque(np.asarray(check.go_stop, np.float64)[:-1])
+                    return self._send(action)  # the planner's own action: not a stop's
                 elif self.stopped_for >= m.stop_timeout:
                     self.final = True
             if self.final and still and self.stopped_for >= 2:
                 self.ended = True
         if self.mode == RUN:
             return self._send(action)
-        self.stopping_steps.add(t)
+        if not self._recovering:  # a crossing that a recovery led to was not foreseen by a stop
+            self.stopping_steps.add(t)
         return self._send(self._plan.popleft() if self._plan else np.zeros(4))
+
+    def _recovers(self, check: Check, margin: float) -> bool:
+        """At rest between the thresholds: does the action bring the box `recover_gain` closer to the
+        middle, once its stop has played out, without passing `stop_at` on the way?"""
+        m = self.m
+        return (
+            float(check.go_ahead) + margin < m.stop_at * self.limit
+            and float(check.go_end) <= float(check.now) - m.recover_gain
+        )
 
     def _track(self, measured, predicted) -> float:
         """Record this step's prediction and the miss of the one made `delay` steps ago for now (the newest
@@ -330,6 +392,7 @@ class Monitor:
             "monitor_stop_steps": [t for t, _ in self.stops],
             "monitor_stop_reasons": [r for _, r in self.stops],
             "monitor_resumes": len(self.resumes),
+            "monitor_recoveries": len(self.recoveries),
             **({"monitor_would_stop": self.would_stop} if self.m.shadow else {}),
         }
 

@@ -80,8 +80,8 @@ def _entry(ev: evaluation.Evaluation) -> dict:
     keep = (
         "safe_boxes", "safe_success", "safe_success_rate", "safe_success_ci95", "false_aborts",
         "safe_stops", "safe_stop_reasons", "failures", "crossings", "unnoticed_crossings", "monitor_stops",
-        "hazardous_boxes", "hazard_aborted", "hazard_outcomes", "steps_success", "max_balance_error_m",
-        "wall_s",
+        "monitor_recoveries", "hazardous_boxes", "hazard_aborted", "hazard_outcomes", "steps_success",
+        "max_balance_error_m", "wall_s",
     )  # fmt: skip
     out = {k: s[k] for k in keep if k in s}
     out["outcomes"] = [r["outcome"] for r in ev.rows]

@@ -45,7 +45,7 @@ import numpy as np
 
 from boxjax import planning
 from boxjax.config import DEFAULT, Config, TaskConfig
-from boxjax.control.monitor import Monitor, MonitorConfig
+from boxjax.control.monitor import Monitor, MonitorConfig, to_host
 from boxjax.control.monitor import check as monitor_check
 from boxjax.control.state_estimate import FilterConfig, PoseFilter, make_filter, state_line, state_window
 from boxjax.robot.adapter import (
@@ -108,7 +108,7 @@ class PlannerStep:
         a, self.plan_state, _ = self.planner.optimize(key, self.model, obs, self.plan_state)
         a = np.asarray(a, np.float64)
         if self.monitor is not None and np.all(np.isfinite(a)):
-            errors, stop = monitor_check(
+            check = monitor_check(
                 self.cfg,
                 self.model,
                 obs.window,
@@ -118,9 +118,7 @@ class PlannerStep:
                 self.monitor.m.backup,
             )
             sigma = self.sigma() if callable(self.sigma) else self.sigma
-            a = self.monitor.decide(
-                self.t, a, np.asarray(errors), np.asarray(stop), sigma, 0, np.asarray(obs.belt_speed)
-            )
+            a = self.monitor.decide(self.t, a, to_host(check), sigma, 0, np.asarray(obs.belt_speed))
         self.t += 1
         return a
 
