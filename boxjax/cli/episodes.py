@@ -450,24 +450,29 @@ def _evaluate_file_box(args, cfg, est, ctrl, faults):
 def cmd_evaluate(args) -> dict:
     from boxjax import config_io
     from boxjax.control import batch
+    from boxjax.experiments import distributed
     from boxjax.experiments import evaluation as experiments
     from boxjax.fileio import check_writable_dir
 
+    distributed.check(args.coordinator, args.num_processes, args.process_id)
+    main = not args.process_id  # the process that writes (the only one without --process-id)
     if not args.one_at_a_time:
         batch.use_host_devices()  # one host device per core: the batched planner shards boxes over them
 
     cfg = load_config(args)
     faults = _faults(args)
-    if args.out and os.path.exists(args.out) and os.listdir(args.out) and not args.force:
+    if main and args.out and os.path.exists(args.out) and os.listdir(args.out) and not args.force:
         raise ValueError(f"--out {args.out} exists and is not empty; pass --force to overwrite its results")
-    if args.out:  # found now, not after every episode has run
+    if main and args.out:  # found now, not after every episode has run
         check_writable_dir(args.out, "--out")
-    if args.plot:
+    if main and args.plot:
         check_writable_dir(os.path.dirname(os.path.abspath(args.plot)), "--plot's directory")
     ctrl = _controller_config(args)
     if ctrl.variant == "paper":
         cli_models.require_models(cfg, calibration=True, config_path=args.config)
     est = _estimator(args, cfg)
+    if args.coordinator:  # every check passed: join the other processes (before JAX starts its backend)
+        distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     if args.box is not None:
         ev = _evaluate_file_box(args, cfg, est, ctrl, faults)
     else:
@@ -488,6 +493,8 @@ def cmd_evaluate(args) -> dict:
     summary = {"command": "evaluate", **ev.summary}
     if args.config:
         summary["config"] = args.config
+    if not main:  # process 0 writes the gathered results
+        return {**summary, "process_id": args.process_id}
     if args.out:
         summary["files"] = experiments.write_evaluation(ev, args.out, " ".join(["boxjax", *sys.argv[1:]]))
         summary["files"]["config"] = config_io.save(os.path.join(args.out, "config.toml"), cfg)
@@ -674,6 +681,16 @@ def add_parsers(sub) -> None:
         check=at_least(1),
         help="boxes per batched planner call (default 8)",
     )
+    option(
+        v,
+        "--coordinator",
+        metavar="HOST:PORT",
+        used_by=(no_file,),
+        help="run across processes or hosts (jax.distributed): process 0's address, with --num-processes "
+        "and --process-id; each process runs its share of the boxes, process 0 writes them all",
+    )
+    option(v, "--num-processes", type=int, used_by=(needs("coordinator"),), help="processes in the run")
+    option(v, "--process-id", type=int, used_by=(needs("coordinator"),), help="this process, 0 .. N - 1")
     option(v, "--out", help="directory: evaluation.json, boxes.npz (for rotate --replay), config.toml")
     option(v, "--force", action="store_true", used_by=(needs("out"),), help="overwrite a non-empty --out")
     option(

@@ -28,6 +28,7 @@ from boxjax.control.episode import run_episode
 from boxjax.control.monitor import MonitorConfig
 from boxjax.control.state_estimate import FilterConfig
 from boxjax.estimator.belief import learned_estimator
+from boxjax.experiments import distributed
 from boxjax.planners.sampling import SamplingOptions
 from boxjax.sim.faults import NONE as NO_FAULTS
 from boxjax.sim.faults import Faults
@@ -252,6 +253,9 @@ def evaluate(
         the controller allows it, `batch.supports`) or one at a time (`controller.run_episode`). The two
         agree in distribution, not bit for bit (see boxjax/batch.py); each episode's actions are kept,
         so `replay` re-simulates any of them exactly either way.
+
+    Under `jax.distributed` (`boxjax.experiments.distributed`) each process runs its share of the boxes
+    and every process returns the whole evaluation.
     """
     if n_safe < 0 or n_hazardous < 0 or n_safe + n_hazardous < 1:
         raise ValueError(
@@ -272,12 +276,12 @@ def evaluate(
         est = estimator_fn or learned_estimator(cfg)
     t0 = time.perf_counter()
     boxes = make_boxes(cfg, n_safe, n_hazardous, seed, family)
-    rows, balance = [], []
+    mine = distributed.share(len(boxes))  # every box, unless this is one process of several
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(boxes), desc=f"evaluate ({estimator}, {ctrl.planner})", unit="box", leave=False)
+        bar = tqdm(total=len(mine), desc=f"evaluate ({estimator}, {ctrl.planner})", unit="box", leave=False)
     results: list[Any] = [None] * len(boxes)
     ended = {"safe": 0, "turned": 0}
 
@@ -290,27 +294,34 @@ def evaluate(
             bar.set_postfix_str(f"safe turned {ended['turned']}/{ended['safe']}")
             bar.update(1)
 
-    dists = [boxes.dist(j) for j in range(len(boxes))]
-    keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in range(len(boxes))]
+    dists = [boxes.dist(j) for j in mine]
+    keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in mine]
     if batched:
         batch.run_episodes(
-            cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, progress=done, faults=faults
-        )
+            cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, faults=faults,
+            progress=lambda i, res: done(mine[i], res),
+        )  # fmt: skip
     else:
-        for j in range(len(boxes)):
-            done(j, run_episode(cfg, dists[j], keys[j], estimator=est, ctrl=ctrl, faults=faults))
-    for j, res in enumerate(results):
-        rows.append(_row(j, boxes, res, cfg))
-        balance.append(np.asarray(res.trace.balance_error, np.float32))
+        for i, j in enumerate(mine):
+            done(j, run_episode(cfg, dists[i], keys[i], estimator=est, ctrl=ctrl, faults=faults))
+    local = [
+        (_row(j, boxes, results[j], cfg), results[j].trace.balance_error, results[j].trace.actions)
+        for j in mine
+    ]
+    ran = [x for part in distributed.gather(local) for x in part]  # every process's, box order restored
+    ran.sort(key=lambda x: x[0]["index"])
+    rows = [r for r, _, _ in ran]
+    balance = [np.asarray(b, np.float32) for _, b, _ in ran]
     if bar is not None:
         bar.close()
     summary = {
         **summarize(rows),
         **settings(estimator, ctrl, seed, family, faults),
         "batched": bool(batched),
+        **({"processes": jax.process_count()} if jax.process_count() > 1 else {}),
         "wall_s": time.perf_counter() - t0,
     }
-    return Evaluation(summary, rows, boxes, balance, [np.asarray(r.trace.actions) for r in results])
+    return Evaluation(summary, rows, boxes, balance, [np.asarray(a) for _, _, a in ran])
 
 
 def write_evaluation(ev: Evaluation, out_dir, command: str | None = None) -> dict[str, str]:

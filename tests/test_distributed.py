@@ -1,0 +1,95 @@
+"""Evaluations across processes (`boxjax.experiments.distributed`, `boxjax evaluate --coordinator`): the
+shares, the settings' checks, and two processes on this machine giving the rows of one."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from boxjax.cli import main
+from boxjax.experiments import distributed
+
+
+@pytest.mark.parametrize(("n", "count"), [(1, 1), (7, 2), (10, 3), (2, 4)])
+def test_the_shares_run_every_box_once(n, count):
+    shares = [distributed.share(n, i, count) for i in range(count)]
+    assert sorted(j for s in shares for j in s) == list(range(n))
+    assert max(map(len, shares)) - min(map(len, shares)) <= 1  # balanced
+    assert distributed.share(n) == list(range(n))  # one process: every box
+
+
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [
+        (["--coordinator", "localhost:12355", "--num-processes", "2"], "go together"),
+        (["--coordinator", "localhost", "--num-processes", "2", "--process-id", "0"], "HOST:PORT"),
+        (["--coordinator", "localhost:12355", "--num-processes", "2", "--process-id", "2"], "--process-id"),
+        (
+            ["--coordinator", "localhost:12355", "--num-processes", "0", "--process-id", "0"],
+            "--num-processes",
+        ),
+        (["--num-processes", "2"], "--coordinator"),
+    ],
+)
+def test_bad_distributed_settings_exit_2_naming_them(argv, named, capsys):
+    assert main(["evaluate", "--boxes", "2", *argv]) == 2
+    assert named in capsys.readouterr().err
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def test_two_processes_give_the_rows_of_one(tmp_path):
+    """Two processes with a localhost coordinator, each running its share of 4 boxes (one hazardous) one at
+    a time, and process 0 writing them all: the same rows, balance traces and actions as one process on
+    the same boxes (episodes cut at 60 control steps: the exploration and the first turning steps)."""
+    cfg = tmp_path / "short.toml"
+    cfg.write_text("[task]\nmax_steps = 60\n")
+    args = [
+        "evaluate",
+        "--boxes",
+        "3",
+        "--hazardous",
+        "1",
+        "--one-at-a-time",
+        "--config",
+        str(cfg),
+        "--quiet",
+    ]
+    cmd = [sys.executable, "-m", "boxjax", *args, "--json"]
+    port = _free_port()
+    procs = [
+        subprocess.Popen(
+            [*cmd, "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)]
+            + (["--out", str(tmp_path / "two")] if i == 0 else []),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    outs = [p.communicate(timeout=300) for p in procs]
+    for p, (_, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, err[-2000:]
+    one = subprocess.run([*cmd, "--out", str(tmp_path / "one")], capture_output=True, text=True, timeout=300)
+    assert one.returncode == 0, one.stderr[-2000:]
+    worker = json.loads(outs[1][0].strip().splitlines()[-1])
+    assert worker["process_id"] == 1 and worker["processes"] == 2 and "files" not in worker
+
+    def rows(d):
+        doc = json.loads((tmp_path / d / "evaluation.json").read_text())
+        return [{k: v for k, v in r.items() if k not in ("wall_s", "plan_ms_median")} for r in doc["rows"]]
+
+    assert rows("two") == rows("one") and len(rows("one")) == 4
+    assert {r["outcome"] for r in rows("one")} - {"step_cap", "aborted"} == set()  # cut short, no failure
+    with np.load(tmp_path / "two" / "boxes.npz") as a, np.load(tmp_path / "one" / "boxes.npz") as b:
+        for k in ("balance", "actions", "keys"):
+            np.testing.assert_array_equal(a[k], b[k])
