@@ -47,6 +47,8 @@ DELAY_STD = (0.0, 0.0018)  # m per sqrt(step): the prediction's error over the d
 MISS_SIGMAS = (0.0, 2.0, 3.0, 4.0)
 # the delay's own multiplier (MonitorConfig.k_delay; None: k_sigma's)
 K_DELAY = (None, 2.0)
+# the carriages' drag over the delay: std per metre of carriage travel in flight (MonitorConfig.drag_std)
+DRAG_STD = (0.0, 0.1, 0.2, 0.3)
 
 
 def run_row(faults: Faults, n: int, seed: int) -> list[dict]:
@@ -92,19 +94,29 @@ def analyse(
     window: int = 10,
     miss_sigmas: float = 0.0,
     k_delay: float | None = None,
+    drag_std: float = 0.0,
 ) -> dict:
     """The alarms a setting would raise, against each episode's true balance trace: a crossing is noticed
     when an alarm came within `window` steps before the action that led to it (the stop's horizon; an
     older alarm would have been followed by a resume); `lead` is how long before. In episodes turned
     without crossing, every alarm onset (a step that alarms after one that did not) is a needless stop.
-    Logs of before the miss was recorded (4 columns) count as no miss."""
+    Logs of before the miss was recorded (4 columns) count as no miss, before the carriage travel in
+    flight (5 columns) as none."""
     limit = CFG.task.balance_limit
     leads, unnoticed, onsets, needless, turned = [], 0, 0, 0, 0
     dvar = delay * delay_std**2
     kd = k if k_delay is None else k_delay
     for ep in episodes:
         alarm = {
-            row[0]: row[1] + _margin(row[3], row[4] if len(row) > 4 else 0.0, dvar, k, kd, miss_sigmas)
+            row[0]: row[1]
+            + _margin(
+                row[3],
+                row[4] if len(row) > 4 else 0.0,
+                dvar + drag_std**2 * (row[5] if len(row) > 5 else 0.0),
+                k,
+                kd,
+                miss_sigmas,
+            )
             >= stop_at * limit
             for row in ep["log"]
         }
@@ -128,6 +140,7 @@ def analyse(
         "delay_std": delay_std,
         "miss_sigmas": miss_sigmas,
         "k_delay": k_delay,
+        "drag_std": drag_std,
         "crossings": int(len(leads) + unnoticed),
         "unnoticed": unnoticed,
         "lead_steps_min": min(leads) if leads else None,
@@ -159,12 +172,13 @@ def main() -> None:
         eps = earlier[name] if earlier is not None else run_row(ROWS[name], args.boxes, args.seed)
         delay = ROWS[name].obs_latency + ROWS[name].action_latency  # what the controller predicts over
         table = [
-            analyse(eps, a, k, ds, delay, miss_sigmas=ms, k_delay=kd)
+            analyse(eps, a, k, ds, delay, miss_sigmas=ms, k_delay=kd, drag_std=dr)
             for ds in DELAY_STD
             for k in K_SIGMA
             for a in STOP_AT
             for ms in (MISS_SIGMAS if ds > 0 else (0.0,))
             for kd in (K_DELAY if ds > 0 else (None,))
+            for dr in (DRAG_STD if ds > 0 and ms == 0 and delay > 0 else (0.0,))
         ]
         wall = time.perf_counter() - t0
         raw[name] = eps

@@ -23,8 +23,9 @@ A stop is a state, not an end:
   An episode that resumes and finishes is a success.
 * A box that came to rest between the two thresholds cannot resume (its present error alone is above
   `resume_below`); it is recovered instead (`MonitorConfig.recover`): at rest, the planner's action is
-  sent when the model predicts that it, followed by a stop, brings the box `recover_gain` closer to the
-  middle without passing `stop_at` on the way; then that stop, then rest again, until the box rests
+  sent when the model predicts that it, followed by a stop that holds the carriages, brings the box
+  `recover_gain` closer to the middle without passing `stop_at` on the way; then that stop, then rest
+  again, until the box rests
   inside `resume_below` and the turn resumes. The stop still counts toward `stop_timeout`, and a
   crossing a recovery leads to counts as unnoticed.
 * The `max_stops`-th balance stop is final, as is a stop that cannot resume within `stop_timeout`
@@ -101,10 +102,16 @@ class MonitorConfig:
     # nothing to check.
     miss_sigmas: float = 0.0
     miss_window: int = 5
+    # The carriages' drag over the delay: a carriage moved under the box drags it by a fraction of the
+    # move the prior predicts with an error of 0.21 rms (scripts/carriage_drag.py), the same for every move
+    # of that carriage under that box. So the carriage travel in flight (the last `delay` actions, summed
+    # per carriage) adds drag_std x travel to the prediction's std over the delay. 0: off.
+    drag_std: float = 0.0
     # Recovery: a balance stop at rest above `resume_below` sends the planner's action (then the stop
-    # the check paired with it) when the model predicts it brings the box at least `recover_gain` (m)
-    # closer to the middle and never above `stop_at` (with the estimate's margin), so that a box that came
-    # to rest between the two thresholds is brought back inside instead of waiting out `stop_timeout`.
+    # `Check.go_stop`: belts to rest, carriages held) when the model predicts it brings the box at least
+    # `recover_gain` (m) closer to the middle and never above `stop_at` (with the estimate's margin), so
+    # that a box that came to rest between the two thresholds is brought back inside instead of waiting
+    # out `stop_timeout`.
     recover: bool = True
     recover_gain: float = 0.001
     max_stops: int = 60  # the max_stops-th balance stop is final
@@ -132,7 +139,7 @@ class MonitorConfig:
             bad("horizon", "must be a whole number of control steps in [1, 40]")
         if not isinstance(self.recover, bool):
             bad("recover", "must be true or false")
-        for name in ("k_sigma", "delay_std", "miss_sigmas", "recover_gain"):
+        for name in ("k_sigma", "delay_std", "miss_sigmas", "recover_gain", "drag_std"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
         if self.k_delay is not None and not (math.isfinite(self.k_delay) and self.k_delay >= 0):
@@ -187,10 +194,14 @@ class Check(NamedTuple):
     go: jax.Array  # () the largest balance error, now and over the horizon, of the action then a stop
     stop: jax.Array  # () the same for a stop at once
     now: jax.Array  # () the window's newest balance error (the state at which the action applies)
-    go_ahead: jax.Array  # () go's largest over the predicted steps alone (without now)
-    go_end: jax.Array  # () go's balance error at the horizon's end, once its stop has played out
+    # The recovery's prediction (`Monitor`): the action followed by the first stop of `backup_set`, the
+    # hold unless only re-centring is allowed. A recovery follows its action with that stop, not with the
+    # one predicted safest: re-centring after it moves a carriage alone under a box at rest, whose drag the
+    # prior predicts worst (a box at a friction of 0.65 was recovered twice into a 4 cm crossing that way).
+    go_ahead: jax.Array  # () its largest balance error over the predicted steps alone (without now)
+    go_end: jax.Array  # () its balance error at the horizon's end, once the stop has played out
     stop_plan: jax.Array  # (horizon, 4) the stop predicted safest at once (a stop issued now sends it)
-    go_stop: jax.Array  # (horizon, 4) the stop that follows the action in `go` (its first horizon - 1)
+    go_stop: jax.Array  # (horizon, 4) that stop (its first horizon - 1 steps follow a recovery)
 
 
 def predicted_errors(
@@ -198,7 +209,7 @@ def predicted_errors(
 ) -> Check:
     """The largest balance error, now (the window's newest state) and over `horizon` predicted steps, of
     (a) `action` followed by a stop and (b) a stop at once, each with the stop of `backup_set` predicted
-    safest, and those stops (a `Check`)."""
+    safest, those stops, and the recovery's prediction (a `Check`)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
@@ -214,10 +225,10 @@ def predicted_errors(
         go=jnp.maximum(worst[0, go_b], now),
         stop=jnp.maximum(worst[1, stop_b], now),
         now=now,
-        go_ahead=worst[0, go_b],
-        go_end=errors[0, go_b, -1],
+        go_ahead=worst[0, 0],
+        go_end=errors[0, 0, -1],
         stop_plan=backups[stop_b],
-        go_stop=backups[go_b],
+        go_stop=backups[0],
     )
 
 
@@ -270,8 +281,10 @@ class Monitor:
         self.ended = False
         self.stopping_steps: set[int] = set()  # control steps at which a stop action was sent
         # per check: (t, go error, stop error, the estimate's sigma before the delay's is added, the largest
-        # miss of the prediction over the delay in the last `miss_window` steps)
-        self.log: list[tuple[int, float, float, float, float]] = []
+        # miss of the prediction over the delay in the last `miss_window` steps, the carriage travel in
+        # flight: the squared per-carriage sums of the last `delay` actions' moves, m^2)
+        self.log: list[tuple[int, float, float, float, float, float]] = []
+        self._in_flight: deque = deque(maxlen=delay)  # carriage moves (2,) of the actions in flight
         self.would_stop: list[int] = []  # shadow mode: the steps at which it would have stopped
         self._plan: deque = deque()  # the stop's actions still to send (then rest)
         # known at rest: nothing but rest sent over the delay and the step before it, belts at rest (so the
@@ -304,10 +317,12 @@ class Monitor:
         """
         m, limit = self.m, self.limit
         miss = self._track(measured, predicted)
-        self.log.append((t, float(check.go), float(check.stop), float(sigma), miss))  # sigma as measured
+        travel = float(np.sum(np.square(np.sum(self._in_flight, axis=0)))) if self._in_flight else 0.0
+        self.log.append((t, float(check.go), float(check.stop), float(sigma), miss, travel))
         still = self.rest.still(belt_speed)
         self._recovering = self._recovering and not still
-        delay_var = 0.0 if still else self.delay_var  # the prediction's over the delay; exact at rest
+        # the prediction's over the delay (exact at rest), with the drag of the carriage moves in flight
+        delay_var = 0.0 if still else self.delay_var + m.drag_std**2 * travel
         if (
             not still
             and m.miss_sigmas > 0
@@ -371,6 +386,7 @@ class Monitor:
     def _send(self, a) -> np.ndarray:
         a = np.asarray(a, np.float64)
         self.rest.sent(a)
+        self._in_flight.append(a[2:])
         return a
 
     def _stop(self, t: int, why: str, plan) -> None:
