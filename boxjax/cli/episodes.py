@@ -456,9 +456,6 @@ def cmd_evaluate(args) -> dict:
 
     distributed.check(args.coordinator, args.num_processes, args.process_id)
     main = not args.process_id  # the process that writes (the only one without --process-id)
-    if not args.one_at_a_time:
-        batch.use_host_devices()  # one host device per core: the batched planner shards boxes over them
-
     cfg = load_config(args)
     faults = _faults(args)
     if main and args.out and os.path.exists(args.out) and os.listdir(args.out) and not args.force:
@@ -468,11 +465,13 @@ def cmd_evaluate(args) -> dict:
     if main and args.plot:
         check_writable_dir(os.path.dirname(os.path.abspath(args.plot)), "--plot's directory")
     ctrl = _controller_config(args)
+    if args.coordinator:  # the settings are checked: join the other processes (before JAX starts its backend)
+        distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    if not args.one_at_a_time:
+        batch.use_host_devices()  # one host device per core: the batched planner shards boxes over them
     if ctrl.variant == "paper":
         cli_models.require_models(cfg, calibration=True, config_path=args.config)
     est = _estimator(args, cfg)
-    if args.coordinator:  # every check passed: join the other processes (before JAX starts its backend)
-        distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     if args.box is not None:
         ev = _evaluate_file_box(args, cfg, est, ctrl, faults)
     else:

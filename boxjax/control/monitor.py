@@ -25,9 +25,8 @@ A stop is a state, not an end:
   `resume_below`); it is recovered instead (`MonitorConfig.recover`): at rest, the planner's action is
   sent when the model predicts that it, followed by a stop that holds the carriages, brings the box
   `recover_gain` closer to the middle without passing `stop_at` on the way; then that stop, then rest
-  again, until the box rests
-  inside `resume_below` and the turn resumes. The stop still counts toward `stop_timeout`, and a
-  crossing a recovery leads to counts as unnoticed.
+  again, until the box rests inside `resume_below` and the turn resumes. The stop still counts toward
+  `stop_timeout`, and a crossing a recovery leads to counts as unnoticed.
 * The `max_stops`-th balance stop is final, as is a stop that cannot resume within `stop_timeout`
   control steps: the gripper comes to rest, the episode ends `safe_stop` with its reason, kept apart
   from failures (`REASONS`).
@@ -271,9 +270,8 @@ class Monitor:
         self.mode, self.reason = RUN, None
         self.stops: list[tuple[int, str]] = []  # (control step, reason) of every stop issued
         self.resumes: list[int] = []
-        self.recoveries: list[
-            int
-        ] = []  # control steps at which a stop sent a recovery (`MonitorConfig.recover`)
+        # control steps at which a stop sent a recovery (`MonitorConfig.recover`)
+        self.recoveries: list[int] = []
         self._recovering = False  # from a recovery until the gripper is known at rest again
         self.balance_stops = 0
         self.stopped_for = 0

@@ -296,7 +296,7 @@ def evaluate(
 
     dists = [boxes.dist(j) for j in mine]
     keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in mine]
-    if batched:
+    if batched and mine:  # (a process of several may have no box: more processes than boxes)
         batch.run_episodes(
             cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, faults=faults,
             progress=lambda i, res: done(mine[i], res),
