@@ -48,6 +48,25 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _run_two(cmd: list[str], out) -> list[str]:
+    """`cmd` in two processes with a localhost coordinator, process 0 writing to `out`; their stdouts."""
+    port = _free_port()
+    procs = [
+        subprocess.Popen(
+            [*cmd, "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)]
+            + (["--out", str(out)] if i == 0 else []),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (_, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, err[-2000:]
+    return [o for o, _ in outs]
+
+
 def test_two_processes_give_the_rows_of_one(tmp_path):
     """Two processes with a localhost coordinator, each running its share of 4 boxes (one hazardous) one at
     a time, and process 0 writing them all: the same rows, balance traces and actions as one process on
@@ -66,23 +85,10 @@ def test_two_processes_give_the_rows_of_one(tmp_path):
         "--quiet",
     ]
     cmd = [sys.executable, "-m", "boxjax", *args, "--json"]
-    port = _free_port()
-    procs = [
-        subprocess.Popen(
-            [*cmd, "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)]
-            + (["--out", str(tmp_path / "two")] if i == 0 else []),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for i in range(2)
-    ]
-    outs = [p.communicate(timeout=300) for p in procs]
-    for p, (_, err) in zip(procs, outs, strict=True):
-        assert p.returncode == 0, err[-2000:]
+    outs = _run_two(cmd, tmp_path / "two")
     one = subprocess.run([*cmd, "--out", str(tmp_path / "one")], capture_output=True, text=True, timeout=300)
     assert one.returncode == 0, one.stderr[-2000:]
-    worker = json.loads(outs[1][0].strip().splitlines()[-1])
+    worker = json.loads(outs[1].strip().splitlines()[-1])
     assert worker["process_id"] == 1 and worker["processes"] == 2 and "files" not in worker
 
     def rows(d):
@@ -105,20 +111,7 @@ def test_two_processes_run_the_batched_learned_path(tmp_path):
     cfg.write_text("[task]\nmax_steps = 60\n")
     base = [sys.executable, "-m", "boxjax", "evaluate", "--boxes", "3", "--hazardous", "2", "--estimator"]
     base += ["learned", "--config", str(cfg), "--quiet", "--json"]
-    port = _free_port()
-    procs = [
-        subprocess.Popen(
-            [*base, "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)]
-            + (["--out", str(tmp_path / "two")] if i == 0 else []),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for i in range(2)
-    ]
-    outs = [p.communicate(timeout=600) for p in procs]
-    for p, (_, err) in zip(procs, outs, strict=True):
-        assert p.returncode == 0, err[-2000:]
+    _run_two(base, tmp_path / "two")
     doc = json.loads((tmp_path / "two" / "evaluation.json").read_text())
     assert [r["index"] for r in doc["rows"]] == list(range(5)) and doc["summary"]["processes"] == 2
     assert all(r["outcome"] for r in doc["rows"]) and sum(r["hazardous"] for r in doc["rows"]) == 2
