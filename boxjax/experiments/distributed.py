@@ -62,11 +62,6 @@ def share(n: int, index: int | None = None, count: int | None = None) -> list[in
     return list(range(index, n, count))
 
 
-def is_main() -> bool:
-    """Whether this process writes the results (process 0; true without `jax.distributed`)."""
-    return jax.process_index() == 0
-
-
 def gather(obj: Any) -> list[Any]:
     """Every process's `obj` (picklable), in process order, on every process; [obj] for one process."""
     if jax.process_count() == 1:
