@@ -493,6 +493,95 @@ def sample_items(key: jax.Array, box: BoxConfig = DEFAULT.box) -> MassDistributi
     return _items_from_uniforms(u[:-1], box, 4)
 
 
+# Slab and scatter samplers: two more families (issue 30). Slabs are walls and layers (a heavy plate or a row
+# of books against one side); scatter is loose contents (each voxel of a random sub-box occupied by chance):
+# not compact, unlike the gaussian blobs, items and slabs. The scatter family is HELD OUT: no estimator,
+# decision rule or controller setting is trained or tuned on it; it exists to test generalisation.
+FAMILIES = ("gaussian", "items", "slabs", "scatter")
+_SCATTER_P_RANGE = (0.15, 0.6)  # probability that a voxel of the sub-box is occupied
+
+
+def _box_mask(box: BoxConfig, start, size) -> jax.Array:
+    """(nx, ny, nz) bool: the voxels [start, start + size) per axis."""
+    ax = [(jnp.arange(g) >= start[d]) & (jnp.arange(g) < start[d] + size[d]) for d, g in enumerate(box.grid)]
+    return ax[0][:, None, None] & ax[1][None, :, None] & ax[2][None, None, :]
+
+
+def _slab_from_uniforms(u, box: BoxConfig, region) -> MassDistribution:
+    """A slab inside index ranges `region` (0..3: U1..U4, 4: the whole box), from 5 uniforms: its thin axis
+    ~ U{x, y, z}; thickness ~ U{1, 2, 3} voxels capped at the range's extent; position ~ U over where it fits;
+    it spans the range's full extent along the other two axes; total mass ~ U(box.mass_range)."""
+    ranges = jnp.asarray(_index_ranges(box))[region]
+    lo, hi = ranges[:, 0], ranges[:, 1]
+    extent = hi - lo
+    axis = jnp.minimum(jnp.floor(u[0] * 3).astype(jnp.int32), 2)
+    thick = jnp.minimum(jnp.floor(u[1] * 3).astype(jnp.int32) + 1, extent[axis])
+    offset = jnp.minimum(jnp.floor(u[2] * (extent[axis] - thick + 1)).astype(jnp.int32), extent[axis] - thick)
+    thin = jnp.arange(3) == axis
+    start = jnp.where(thin, lo + offset, lo)
+    size = jnp.where(thin, thick, extent)
+    total_mass = _lerp(u[3], *box.mass_range)
+    return MassDistribution(_box_mask(box, start, size).astype(jnp.float32), total_mass.astype(jnp.float32))
+
+
+def sample_slabs(key: jax.Array, box: BoxConfig = DEFAULT.box) -> MassDistribution:
+    """A random box holding one slab (a wall or a layer) anywhere: safe or hazardous (`_slab_from_uniforms`;
+    a slab 1-2 voxels thick against an end or a side is hazardous). Pure jnp, jittable."""
+    return _slab_from_uniforms(jax.random.uniform(key, (4,), jnp.float32), box, 4)
+
+
+def sample_slabs_hazardous(key: jax.Array, box: BoxConfig = DEFAULT.box) -> MassDistribution:
+    """A random hazardous box: one slab inside a random outer quarter U1..U4 (`_slab_from_uniforms`)."""
+    u = jax.random.uniform(key, (5,), jnp.float32)
+    region = jnp.minimum(jnp.floor(u[4] * 4).astype(jnp.int32), 3)
+    return _slab_from_uniforms(u, box, region)
+
+
+def _scatter_from_uniforms(key, box: BoxConfig, region) -> MassDistribution:
+    """Loose contents inside index ranges `region`: a sub-box (per axis, size ~ U{1..extent}, position ~ U
+    over where it fits) whose voxels are occupied independently with probability p ~ U(0.15, 0.6), one of
+    them always (so the box is never empty); total mass ~ U(box.mass_range)."""
+    k_u, k_vox, k_one = jax.random.split(key, 3)
+    u = jax.random.uniform(k_u, (8,), jnp.float32)
+    ranges = jnp.asarray(_index_ranges(box))[region]
+    lo, hi = ranges[:, 0], ranges[:, 1]
+    extent = hi - lo
+    size = jnp.minimum(jnp.floor(u[:3] * extent).astype(jnp.int32) + 1, extent)
+    start = lo + jnp.minimum(jnp.floor(u[3:6] * (extent - size + 1)).astype(jnp.int32), extent - size)
+    inside = _box_mask(box, start, size)
+    p = _lerp(u[6], *_SCATTER_P_RANGE)
+    one = jax.random.randint(k_one, (3,), 0, size) + start
+    forced = _box_mask(box, one, jnp.ones(3, jnp.int32))
+    occ = inside & ((jax.random.uniform(k_vox, tuple(box.grid)) < p) | forced)
+    return MassDistribution(occ.astype(jnp.float32), _lerp(u[7], *box.mass_range).astype(jnp.float32))
+
+
+def sample_scatter(key: jax.Array, box: BoxConfig = DEFAULT.box) -> MassDistribution:
+    """A random box of loose contents anywhere (`_scatter_from_uniforms`; safe or hazardous). Held out
+    (see `FAMILIES`). Pure jnp, jittable."""
+    return _scatter_from_uniforms(key, box, 4)
+
+
+def sample_scatter_hazardous(key: jax.Array, box: BoxConfig = DEFAULT.box) -> MassDistribution:
+    """A random hazardous box of loose contents inside a random outer quarter U1..U4. Held out."""
+    k_region, k = jax.random.split(key)
+    return _scatter_from_uniforms(k, box, jax.random.randint(k_region, (), 0, 4))
+
+
+def sampler(family: str, hazardous: bool):
+    """The sampler (key, box) -> MassDistribution of a family in `FAMILIES`: its hazardous form (all mass in
+    one outer quarter) or its free form (safe or hazardous as it falls; for "gaussian", `sample`)."""
+    table = {
+        "gaussian": (sample, sample_hazardous),
+        "items": (sample_items, sample_items_hazardous),
+        "slabs": (sample_slabs, sample_slabs_hazardous),
+        "scatter": (sample_scatter, sample_scatter_hazardous),
+    }
+    if family not in table:
+        raise ValueError(f"unknown box family {family!r}; choose one of {FAMILIES}")
+    return table[family][bool(hazardous)]
+
+
 # ----------------------------------------------------------------------------------------------------------
 # Named distributions (paper §4.1). Fixed parameters: box-frame metres; never derived from a key.
 
