@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 Params = list  # list[dict[str, jax.Array]]
 
@@ -76,3 +77,44 @@ def n_params(params) -> int:
 def sizes_of(params: Params) -> tuple[int, ...]:
     """Layer widths (in, hidden..., out) of an MLP built by `init`."""
     return (int(params[0]["w"].shape[0]), *(int(layer["w"].shape[1]) for layer in params))
+
+
+def fit_classifier(
+    key: jax.Array,
+    x,
+    y,
+    hidden: Sequence[int] = (128, 128),
+    *,
+    epochs: int = 15,
+    batch_size: int = 512,
+    optimizer: optax.GradientTransformation | None = None,
+    seed: int = 0,
+) -> Params:
+    """A binary classifier (x (N, F) -> one logit) trained by sigmoid cross-entropy on labels y (N,),
+    minibatches shuffled by numpy's generator `seed` (a partial last batch is dropped), Adam(1e-3) unless
+    `optimizer` is given; returns its params (`logits` scores a batch)."""
+    x, y = jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32)
+    net = init(key, (x.shape[1], *hidden, 1))
+    opt = optax.adam(1e-3) if optimizer is None else optimizer
+    state = opt.init(net)
+
+    def loss(net, xb, yb):
+        return jnp.mean(optax.sigmoid_binary_cross_entropy(logits(net, xb), yb))
+
+    @jax.jit
+    def step(net, state, idx):
+        g = jax.grad(loss)(net, x[idx], y[idx])
+        u, state = opt.update(g, state, net)
+        return optax.apply_updates(net, u), state
+
+    rng = np.random.default_rng(seed)
+    for _ in range(epochs):
+        perm = rng.permutation(x.shape[0])
+        for i in range(0, len(perm) - batch_size + 1, batch_size):
+            net, state = step(net, state, jnp.asarray(perm[i : i + batch_size]))
+    return net
+
+
+def logits(params: Params, x) -> jax.Array:
+    """(N,) the first output of a batch x (N, in)."""
+    return jax.vmap(lambda v: apply(params, v)[0])(jnp.asarray(x, jnp.float32))

@@ -149,27 +149,17 @@ def moment_ceiling(seed: int, n_train: int, n_test: int, cfg, epochs: int = 40) 
     key_tr, key_te, key_init = jax.random.split(jax.random.fold_in(jax.random.key(seed), 99), 3)
     x_tr, y_tr, _ = draw_all(key_tr, n_train)
     x_te, y_te, fam = draw_all(key_te, n_test)
-    net = mlp.init(key_init, (x_tr.shape[1], 256, 256, 256, 1))
-    opt = optax.adamw(1e-3)
-    state = opt.init(net)
-
-    def loss(net, x, y):
-        logits = jax.vmap(lambda v: mlp.apply(net, v)[0])(x)
-        return jnp.mean(optax.sigmoid_binary_cross_entropy(logits, y))
-
-    @jax.jit
-    def step(net, state, x, y):
-        g = jax.grad(loss)(net, x, y)
-        u, state = opt.update(g, state, net)
-        return optax.apply_updates(net, u), state
-
-    rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    for _ in range(epochs):
-        perm = rng.permutation(len(x_tr))
-        for i in range(0, len(perm) - 255, 256):
-            j = perm[i : i + 256]
-            net, state = step(net, state, jnp.asarray(x_tr[j]), jnp.asarray(y_tr[j], jnp.float32))
+    net = mlp.fit_classifier(
+        key_init,
+        x_tr,
+        y_tr,
+        (256, 256, 256),
+        epochs=epochs,
+        batch_size=256,
+        optimizer=optax.adamw(1e-3),
+        seed=seed,
+    )
     score = np.asarray(jax.vmap(lambda v: mlp.apply(net, v)[0])(jnp.asarray(x_te)))
     safe = score[(fam == "sample") & ~y_te]
     thr = float(np.quantile(safe, 0.98, method="higher"))

@@ -10,7 +10,7 @@ import pytest
 from boxjax import control as controller
 from boxjax import estimator, massdist, planning
 from boxjax.config import DEFAULT as cfg
-from boxjax.estimator import explore
+from boxjax.estimator import explore, moments
 from boxjax.estimator.shipped import default_estimator
 from boxjax.sim import native
 
@@ -95,3 +95,19 @@ def test_the_default_h_is_chosen_by_the_sensor_the_exploration_was_seen_through(
     out = given({**exploration, "sensor": {"obs_noise_mm": 3.0, "drop_rate": 0.0}})
     assert out["hazard_prob"] == by_exact and out["estimator_weights"] == str(SHIPPED_WEIGHTS)
     assert sensor_estimator(cfg).provenance["sensor_randomisation"]["p_perfect"] > 0
+
+
+def test_learned_estimate_reads_the_moments_with_their_std(exploration):
+    est_fn = controller.learned_estimator(cfg)
+    truth = massdist.named("C", cfg.box)
+    est, _, why = controller.decide(cfg, truth, exploration, est_fn)
+    assert why is None and set(est["moments"]) == set(moments.QUANTITIES)
+    q = np.asarray(moments.true_moments(truth, cfg.box))
+    for i, name in enumerate(moments.QUANTITIES):
+        m, s = est["moments"][name]["mean"], est["moments"][name]["std"]
+        assert s > 0 and abs(q[i] - m) < 3 * s, (name, q[i], m, s)
+    assert "planar radius of gyration" in est["moments_text"]
+    # A noisy sensor: the moments model was trained on exact explorations, so it is not asked.
+    noisy = {**exploration, "sensor": {"obs_noise_mm": 3.0, "drop_rate": 0.0}}
+    assert "moments" not in est_fn(noisy)
+    assert "moments" not in controller.learned_estimator(cfg, with_moments=False)(exploration)

@@ -127,8 +127,14 @@ def test_the_exploration_guard_refuses_a_box_the_fixed_sequence_would_lose():
     assert s["aborted"] and not s["lost_exploring"] and not s["success"]
     assert "refused during the exploration" in s["abort_reason"] and "0.2 cm" in s["abort_reason"]
     bal = np.abs(one.trace.balance_error)
-    tripped = int(np.argmax(bal > 0.875 * 0.002))  # the first state past the guard
+    # The first step that is not the fixed sequence's: the guard tripped on the state before it, at the
+    # latest the first state past 0.875 x 2 mm (it looks ahead along the trend: `explore_guard_lead`).
+    sent = one.trace.actions
+    fixed = explore.exploration_actions(cfg)[: len(sent)]
+    tripped = int(np.argmax(np.any(sent[: len(fixed)] != fixed, axis=1)))
+    past = bal > 0.875 * 0.002
     assert 0 < tripped < 45 and bal.max() <= 0.002
+    assert not past.any() or tripped <= int(np.argmax(past))
     assert s["exploration_steps"] == tripped + explore.GUARD_STEPS
     # the re-centring steps: belts stopped, both carriages stepped alike towards the box
     rec = one.trace.actions[tripped:]
@@ -217,6 +223,11 @@ def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path
         (["evaluate", "--boxes", "3", "--slots", "0"], "--slots"),
         (["evaluate", "--boxes", "3", "--planner", "simulator", "--one-at-a-time"], "batched"),
         (["rotate", "--estimator", "learned", "--planner", "paper", "--belief", "ensemble"], "sampling"),
+        (["evaluate", "--boxes", "3", "--explore-guard", "off", "--guard-lead", "2"], "--guard-lead"),
+        (["evaluate", "--boxes", "3", "--guard-lead", "-1"], "--guard-lead"),
+        (["evaluate", "--boxes", "3", "--hazard-family", "scatter"], "--hazardous 0"),
+        (["train-moments", "--boxes", "40", "--out", "m.txt"], ".npz"),
+        (["estimator-eval", "--boxes", "2", "--moments", "/nonexistent.npz"], "nonexistent"),
     ],
 )
 def test_bad_input_exits_2_naming_the_problem(argv, message, capsys):

@@ -111,3 +111,29 @@ def test_describe_effect_reports_every_named_box():
     assert set(eff) == {"uniform", "D"}
     assert set(eff["uniform"]) == {"dx_cm", "dy_cm", "dyaw_deg", "max_balance_error_cm", "clipped"}
     assert eff["uniform"]["clipped"] is False
+
+
+def _guard_trace(guard, ys):
+    """Feed a guard states whose box centre sits at ys (m) between belts at -0.1 / +0.1 m; the step at
+    which it tripped (None: never)."""
+    for t, y in enumerate(ys):
+        s = np.array([-0.1, 0.1, 0.0, y, 0.0])
+        guard.next(s, abs(y))
+        if guard.tripped:
+            return t
+    return None
+
+
+def test_guard_lead_trips_on_the_trend_before_the_threshold():
+    swing = [0.001, 0.005, 0.011, 0.020, 0.030, 0.041]  # ~1 cm per step: an end-heavy box's first turn
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875), swing) == 5  # past 3.5 cm only once beyond 4 cm
+    lead = explore.Guarded(DEFAULT, 0.875, lead=3)
+    assert _guard_trace(lead, swing) == 3  # 2.0 cm + 3 x 0.6 cm/step (the smaller change) > 3.5 cm
+    assert "expected 3 steps ahead" in lead.why()
+    # Coming back towards the midline, or steady, never trips below the threshold.
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3), swing[::-1][1:]) is None
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3), [0.03] * 10) is None
+    # Noise about a resting box: one large change alone (a frame off by 5 mm) does not trip it.
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3), [0.028, 0.028, 0.033, 0.028, 0.028]) is None
+    with pytest.raises(ValueError, match="lead must be >= 0"):
+        explore.Guarded(DEFAULT, 0.875, lead=-1)

@@ -80,3 +80,12 @@ def test_tiny_mlp_learns_a_function():
     trained, _ = fit(params)
     assert float(loss(trained)) < float(loss(params)) / 10
     assert float(loss(trained)) < 1e-2
+
+
+def test_fit_classifier_separates_a_linear_rule():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2048, 3)).astype(np.float32)
+    y = x[:, 0] + 0.5 * x[:, 1] > 0
+    net = mlp.fit_classifier(jax.random.PRNGKey(0), x, y, (16,), epochs=40, batch_size=64)
+    acc = np.mean((np.asarray(mlp.logits(net, x)) > 0) == y)
+    assert acc > 0.95

@@ -188,12 +188,15 @@ def test_a_box_the_controller_loses_is_never_lost_unnoticed_with_the_monitor():
 
     box = sample_safe(jax.random.PRNGKey(1000), 57, CFG)[56]
     key = jax.random.fold_in(jax.random.PRNGKey(1001), 56)
+    # The exploration guard's lead refuses this box during the carriage probes (its trend includes the
+    # commanded midline moves); with the present-value guard it reaches the turn, which is what is tested.
+    guard = {"explore_guard_lead": 0}
     for faults in (Faults(), Faults(obs_latency=4)):
         off = run_episode(
-            CFG, box, key, ctrl=ControllerConfig(monitor=monitor.OFF), faults=faults, max_steps=90
+            CFG, box, key, ctrl=ControllerConfig(monitor=monitor.OFF, **guard), faults=faults, max_steps=90
         )
         assert off.summary["crossing"] and off.summary["unnoticed_crossing"], faults
-        on = run_episode(CFG, box, key, ctrl=ControllerConfig(), faults=faults, max_steps=150).summary
+        on = run_episode(CFG, box, key, ctrl=ControllerConfig(**guard), faults=faults, max_steps=150).summary
         assert not on["unnoticed_crossing"] and on["monitor_stops"] >= 1, faults
         assert on["safe_stop"] or on["success"] or on["crossing"]
 

@@ -1,5 +1,5 @@
 """The `boxjax` command line: `main` (the entry point) and one module per group of commands (`episodes`:
-simulate, rotate, demo, evaluate; `box`: box, config; `train`: train-estimator, estimator-eval,
+simulate, rotate, demo, evaluate; `box`: box, config; `train`: train-estimator, train-moments, estimator-eval,
 calibrate, train-baseline, compare; `reproduce`). `args` holds the option rules (an option the chosen
 mode does not use is refused) and `models` the checks that a model fits the given config.
 

@@ -271,6 +271,16 @@ def planner_options(
     )
     option(
         p,
+        "--guard-lead",
+        type=int,
+        default=3,
+        check=at_least(0),
+        used_by=(*used_by, lambda a: None if a.explore_guard else "does nothing with --explore-guard off"),
+        help="control steps the exploration guard looks ahead along the balance error's trend (0: the "
+        "present error alone)",
+    )
+    option(
+        p,
         "--variant",
         default="slip",
         choices=("slip", "paper"),

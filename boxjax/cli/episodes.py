@@ -152,6 +152,7 @@ def _controller_config(args):
         sampling=sampling,
         belief=getattr(args, "belief", None) or "mean",
         explore_guard=args.explore_guard or None,
+        explore_guard_lead=args.guard_lead,
         friction_set=tuple(args.friction_set) if getattr(args, "friction_set", None) else None,
         monitor=monitor.OFF if getattr(args, "monitor", "on") == "off" else monitor.MonitorConfig(),
     )
@@ -649,9 +650,10 @@ def add_parsers(sub) -> None:
         v,
         "--hazard-family",
         default="gaussian",
-        choices=("gaussian", "items"),
+        choices=("gaussian", "items", "slabs", "scatter"),
         used_by=(no_file, lambda a: None if a.hazardous > 0 else "does nothing with --hazardous 0"),
-        help="gaussian: massdist.sample_hazardous (H's training family); items: 1-16 voxels",
+        help="gaussian: massdist.sample_hazardous (H's training family); items: 1-16 voxels; slabs: a wall "
+        "1-2 voxels thick; scatter: loose contents, held out of all training and tuning",
     )
     option(v, "--seed", type=int, default=0, help="draws the boxes and every episode's key")
     option(v, "--estimator", default="oracle", choices=("oracle", "learned"), help="oracle or the learned H")

@@ -8,6 +8,7 @@
     boxjax box --random SEED --out FILE.npz | boxjax box FILE [--plot f.png]     (your own boxes)
     boxjax config [--out FILE.toml]                                              (the defaults as TOML)
     boxjax train-estimator [--boxes 2000] [--seed S] --out DIR [--backend native|mjx] [--chunk 500]
+    boxjax train-moments [--boxes 2000] [--seed S] --out FILE.npz [--backend native|mjx] [--chunk 500]
     boxjax estimator-eval [--boxes 500] [--seed S] [--weights FILE]
     boxjax calibrate [--transitions 400] [--seed S] --out FILE [--plot FILE.png]
     boxjax train-baseline [--model blackbox|pets] [--distribution A] [--episodes 200] [--seed 0] --out DIR

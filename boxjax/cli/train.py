@@ -35,12 +35,28 @@ def cmd_train_estimator(args) -> dict:
     return {**out, "config": args.config} if args.config else out
 
 
+def cmd_train_moments(args) -> dict:
+    from boxjax.fileio import check_writable_dir
+    from boxjax.training import moments as TM
+
+    cfg = load_config(args)
+    if not args.out.endswith(".npz") or os.path.isdir(args.out):
+        raise ValueError(f"--out must be a .npz file path, got {args.out!r}")
+    check_writable_dir(os.path.dirname(os.path.abspath(args.out)), "--out's directory")
+    log = (lambda s: None) if args.json else (lambda s: print(s, file=sys.stderr))
+    report = TM.train_moments(args.seed, args.boxes, args.out, cfg, log=log, **_simulation(args))
+    out = {"command": "train-moments", "boxes": args.boxes, "seed": args.seed, **report}
+    return {**out, "config": args.config} if args.config else out
+
+
 def cmd_estimator_eval(args) -> dict:
     from boxjax.training import estimator as P
 
     cfg = load_config(args)
     cli_models.require_models(cfg, estimator=True, weights=args.weights, config_path=args.config)
-    res = P.evaluate_estimator(args.seed, args.boxes, args.weights, cfg, **_simulation(args))
+    res = P.evaluate_estimator(
+        args.seed, args.boxes, args.weights, cfg, moments_path=args.moments, **_simulation(args)
+    )
     return {"command": "estimator-eval", **res}
 
 
@@ -233,10 +249,24 @@ def add_parsers(sub) -> None:
     t.add_argument("--json", action="store_true")
     t.set_defaults(func=cmd_train_estimator)
 
+    m = sub.add_parser(
+        "train-moments",
+        help="train the moments estimator (mass, centre of mass, spreads, I_zz with calibrated std) on the "
+        "wide training mixture (gaussian mixtures, items, slabs)",
+    )
+    option(m, "--boxes", type=int, default=2000, check=at_least(20), help="random boxes (train + validation)")
+    option(m, "--seed", type=int, default=0, help="PRNG seed of the boxes and the training")
+    m.add_argument("--out", required=True, help="the checkpoint to write (.npz)")
+    _simulation_options(m)
+    config_option(m)
+    m.add_argument("--json", action="store_true")
+    m.set_defaults(func=cmd_train_moments)
+
     e = sub.add_parser("estimator-eval", help="accuracy of H on fresh random boxes")
     option(e, "--boxes", type=int, default=500, check=at_least(1), help="fresh random boxes")
     option(e, "--seed", type=int, default=1, help="PRNG seed of the boxes")
     option(e, "--weights", help="checkpoint (default: the one shipped with boxjax)")
+    option(e, "--moments", help="moments checkpoint (train-moments; default: the one shipped with boxjax)")
     _simulation_options(e)
     config_option(e)
     e.add_argument("--json", action="store_true")

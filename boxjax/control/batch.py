@@ -305,7 +305,12 @@ def run_episodes(
     n_explore = np.zeros(B, np.int32)
     guard_m = ctrl.explore_guard if model is None else None
     guards = (
-        [explore.Guarded(cfg, guard_m, settle=r.world.exploration_delay) for r in rec] if ctrl.explore else []
+        [
+            explore.Guarded(cfg, guard_m, settle=r.world.exploration_delay, lead=ctrl.explore_guard_lead)
+            for r in rec
+        ]
+        if ctrl.explore
+        else []
     )
     exploring = np.full(B, bool(guards))
     while exploring.any():
@@ -498,7 +503,11 @@ def replay_episode(
     actions = np.asarray(actions, np.float64).reshape(-1, 4)
     late = faults.action_latency  # the action sent at step t is applied at t + late
     sent = np.concatenate([actions[late:], np.zeros((min(late, len(actions)), 4))])
-    guard = explore.Guarded(cfg, ctrl.explore_guard, settle=world.exploration_delay) if ctrl.explore else None
+    guard = (
+        explore.Guarded(cfg, ctrl.explore_guard, settle=world.exploration_delay, lead=ctrl.explore_guard_lead)
+        if ctrl.explore
+        else None
+    )
     exploring, n_explore, lost = guard is not None, 0, False
     decided: tuple = ({}, None, None)
 

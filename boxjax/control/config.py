@@ -35,6 +35,13 @@ class ControllerConfig:
     # explore without it. 0.875 (3.5 of 4 cm) was chosen over 0.75 on development boxes
     # (docs/results/estimator-and-hazards.md).
     explore_guard: float | None = 0.875
+    # Control steps the guard looks ahead along the balance error's trend (`explore.Guarded`'s lead). A box
+    # whose mass sits at one end swings its centre sideways by ~1 cm per step during the exploration's
+    # first turn and passed the 3.5 cm guard within a step of crossing 4 cm. On development boxes
+    # (scripts/exploration_guard.py, seeds 301-307, 1,800 boxes of four families) lead 3 left 1 box lost
+    # while exploring (the present-value guard: 37; no guard: 63) for 1 of 583 label-safe gaussian boxes
+    # refused (0 before; 3 with 1 mm of pose noise); lead 4 refused 6 of them.
+    explore_guard_lead: int = 3
     planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
     sampling: Any = None  # planners.sampling.SamplingOptions (None: its defaults)
     simulator: Any = None  # planners.simulator.SimulatorOptions (None: its defaults)
@@ -67,6 +74,8 @@ class ControllerConfig:
     monitor: MonitorConfig = MonitorConfig()
 
     def __post_init__(self):
+        if self.explore_guard_lead < 0:
+            raise ValueError(f"explore_guard_lead must be >= 0 control steps, got {self.explore_guard_lead}")
         if self.explore_guard is not None and not 0 < self.explore_guard < 1:
             raise ValueError(
                 "explore_guard must be a fraction of the balance limit in (0, 1) or None, got "

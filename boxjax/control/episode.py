@@ -26,7 +26,7 @@ from boxjax.control.models import planning_model
 from boxjax.control.monitor import Monitor
 from boxjax.control.monitor import crossing as monitor_crossing
 from boxjax.control.world import World
-from boxjax.estimator import com_error_cm, explore
+from boxjax.estimator import com_error_cm, explore, moments
 from boxjax.estimator.belief import decide
 from boxjax.planners.registry import make_planner
 from boxjax.sim import make_env
@@ -136,6 +136,13 @@ def episode_summary(
             summary["hazard_prob"] = float(est["hazard_prob"])
         if est.get("estimator_weights") is not None:  # which H read the exploration (`learned_estimator`)
             summary["estimator_weights"] = est["estimator_weights"]
+        if est.get("moments") is not None:  # and the moments, with each one's error in stated stds
+            truth_q = np.asarray(moments.true_moments(truth, cfg.box), np.float64)
+            summary["moments"] = est["moments"]
+            summary["moments_z"] = {
+                q: (float(truth_q[i]) - v["mean"]) / v["std"]
+                for i, (q, v) in enumerate(est["moments"].items())
+            }
     safe_stop = None
     if monitor is not None and monitor.stopped and not final["success"] and not aborted:
         failed = final["done"]  # the true world ended the episode: a failure the stop did not prevent
@@ -219,7 +226,12 @@ def run_episode(
     # 1. exploration (paper §2.2): a fixed open-loop sequence, guarded (`explore.Guarded`)
     n_explore = 0
     guard = (
-        explore.Guarded(cfg, ctrl.explore_guard if model is None else None, settle=world.exploration_delay)
+        explore.Guarded(
+            cfg,
+            ctrl.explore_guard if model is None else None,
+            settle=world.exploration_delay,
+            lead=ctrl.explore_guard_lead,
+        )
         if ctrl.explore
         else None
     )

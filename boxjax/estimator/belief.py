@@ -9,14 +9,17 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import numpy as np
 
 from boxjax import massdist
 from boxjax.config import Config
-from boxjax.estimator import explore, hazard
+from boxjax.estimator import explore, hazard, moments
 from boxjax.estimator.io import load
 from boxjax.estimator.metrics import estimate as estimate_with
-from boxjax.estimator.shipped import default_estimator, imperfect_sensor, sensor_estimator
+from boxjax.estimator.shipped import default_estimator, default_moments, imperfect_sensor, sensor_estimator
+
+_predict_moments = jax.jit(moments.predict)
 
 
 def hazard_explanation(
@@ -46,7 +49,9 @@ def oracle_estimator(truth: massdist.MassDistribution, cfg: Config) -> dict:
     return {"distribution": truth, "hazardous": bool(massdist.is_hazardous(truth, cfg.box))}
 
 
-def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str = "physics"):
+def learned_estimator(
+    cfg: Config, weights: str | None = None, hazard_rule: str = "physics", with_moments: bool = True
+):
     """The learned H as a controller estimator: exploration dict -> {"distribution", "hazardous", ...}.
 
     weights: an estimator checkpoint, used for every exploration; None (default): the two shipped with
@@ -61,12 +66,16 @@ def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str 
     "hazard_explanation" (the estimated centre of mass, its uncertainty and the region, in words),
     "hazard_margin" and "hazard_region"; "hazard_prob" stays the head's probability. "estimator_weights"
     names the H that read the exploration ("shipped", "shipped_sensor" or the path given).
+    with_moments: also read the box's physical moments with their calibrated std (the shipped
+    `boxjax.estimator.moments` model; "moments" {quantity: {mean, std}} and "moments_text"), for a perfect
+    sensor only (the model was trained on exact explorations).
     """
     if hazard_rule not in hazard.HAZARD_RULES:
         choices = ", ".join(hazard.HAZARD_RULES)
         raise ValueError(f"unknown hazard rule {hazard_rule!r}; choose one of {choices}")
 
     model = default_estimator(cfg) if weights is None else load(weights, expected_box_config=cfg.box)
+    moments_model = default_moments(cfg) if with_moments else None
     for_sensor = sensor_estimator(cfg) if weights is None else model  # loaded now: fails before any work
     applied = explore.applied_actions(cfg)
 
@@ -82,6 +91,9 @@ def learned_estimator(cfg: Config, weights: str | None = None, hazard_rule: str 
             )
         traj, final = explore.trajectory(exploration["s"], exploration["belt_speed"], applied)
         out = estimate_with(h, np.asarray(traj), np.asarray(final))
+        if moments_model is not None and not noisy:  # trained on exact explorations: not for a noisy sensor
+            m = jax.tree.map(np.asarray, _predict_moments(moments_model, traj, final))
+            out.update(moments=moments.as_dict(m), moments_text=moments.describe(m))
         if hazard_rule != "head":
             a = hazard.assess(h, np.asarray(traj), np.asarray(final), hazard_rule)
             keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")
@@ -102,4 +114,6 @@ def decide(cfg: Config, truth: massdist.MassDistribution, exploration: dict, est
         "hazard_explanation"
     ):  # the physics rule's reading (boxjax.estimator.hazard)
         why = f"{why} Physics rule: {est['hazard_explanation']}"
+    if why is not None and est.get("moments_text"):
+        why = f"{why} Moments read from the exploration: {est['moments_text']}."
     return est, belief, why

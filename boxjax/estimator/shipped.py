@@ -2,7 +2,9 @@
 size and exploration sequence: `boxjax/data/estimator.npz` (and its report), trained on the simulator's
 exact explorations, for a perfect sensor; `boxjax/data/estimator_sensor.npz` (and its report), trained on
 the same kind of explorations seen through randomised sensors (`boxjax.training.randomise`), for a camera's
-noisy pose and dropped frames (docs/results/faults.md)."""
+noisy pose and dropped frames (docs/results/faults.md); `boxjax/data/moments.npz`, the moments estimator
+(`boxjax.estimator.moments`), trained on exact explorations of the wide training mixture
+(`boxjax.training.wide`)."""
 
 from __future__ import annotations
 
@@ -14,12 +16,15 @@ import numpy as np
 from boxjax.config import DEFAULT, Config
 from boxjax.estimator import explore
 from boxjax.estimator.io import CheckpointError, load
+from boxjax.estimator.moments import MomentsError, MomentsModel
+from boxjax.estimator.moments import load as load_moments
 from boxjax.estimator.net import EstimatorParams
 
 SHIPPED_WEIGHTS = Path(__file__).parent.parent / "data" / "estimator.npz"
 SHIPPED_REPORT = Path(__file__).parent.parent / "data" / "estimator_report.json"
 SHIPPED_SENSOR_WEIGHTS = Path(__file__).parent.parent / "data" / "estimator_sensor.npz"
 SHIPPED_SENSOR_REPORT = Path(__file__).parent.parent / "data" / "estimator_sensor_report.json"
+SHIPPED_MOMENTS = Path(__file__).parent.parent / "data" / "moments.npz"
 
 
 def check_exploration(model: EstimatorParams, cfg: Config, path) -> None:
@@ -65,3 +70,22 @@ def imperfect_sensor(sensor) -> bool:
 def default_estimator_cache_clear() -> None:
     """Forget the loaded shipped H (after `ship_estimator` replaced the file)."""
     _load_default.cache_clear()
+
+
+@functools.lru_cache(maxsize=4)
+def _load_moments(path: str, cfg: Config) -> MomentsModel:
+    model, meta = load_moments(path, cfg.box)
+    stored = meta.get("exploration_actions")
+    current = explore.exploration_actions(cfg)
+    if stored is not None and (
+        np.shape(stored) != current.shape or not np.allclose(stored, current, atol=1e-7)
+    ):
+        raise MomentsError(
+            f"{path}: trained on a different exploration sequence than this config's; retrain it"
+        )
+    return model
+
+
+def default_moments(cfg: Config = DEFAULT) -> MomentsModel:
+    """The shipped moments estimator, loaded once per config; MomentsError if missing or incompatible."""
+    return _load_moments(str(SHIPPED_MOMENTS), cfg)

@@ -34,7 +34,7 @@ from boxjax.sim.faults import NONE as NO_FAULTS
 from boxjax.sim.faults import Faults
 from boxjax.viz import animate
 
-HAZARD_FAMILIES = ("gaussian", "items")
+HAZARD_FAMILIES = ("gaussian", "items", "slabs", "scatter")
 RESULTS_FORMAT, RESULTS_VERSION = "boxjax-evaluation", 1
 
 
@@ -87,11 +87,13 @@ def sample_safe(key, n: int, cfg: Config) -> list[massdist.MassDistribution]:
 def sample_hazard_family(
     key, n: int, cfg: Config, family: str = "gaussian"
 ) -> list[massdist.MassDistribution]:
-    """n hazardous distributions: "gaussian" (`massdist.sample_hazardous`, the family H was trained on) or
-    "items" (`massdist.sample_items_hazardous`: 1-16 occupied voxels inside one outer quarter)."""
+    """n hazardous distributions: "gaussian" (`massdist.sample_hazardous`, the family H was trained on),
+    "items" (`massdist.sample_items_hazardous`: 1-16 occupied voxels inside one outer quarter), "slabs"
+    (a wall or layer 1-2 voxels thick in a quarter) or "scatter" (loose contents in a quarter: each voxel
+    of a random sub-box occupied by chance; held out of every training and tuning decision)."""
     if family not in HAZARD_FAMILIES:
         raise ValueError(f"unknown hazardous family {family!r}; choose one of {HAZARD_FAMILIES}")
-    draw = massdist.sample_hazardous if family == "gaussian" else massdist.sample_items_hazardous
+    draw = massdist.sampler(family, hazardous=True)
     return [jax.tree.map(np.asarray, draw(jax.random.fold_in(key, i), cfg.box)) for i in range(n)]
 
 
@@ -147,10 +149,25 @@ def _row(j: int, boxes: EvalBoxes, res, cfg: Config) -> dict:
         "plan_ms_median": s["plan_ms_median"],
         "wall_s": float(s["wall_s"]),
     }
-    for k in ("iou", "com_error_cm", "mass_error_kg", "hazard_prob"):
+    for k in ("iou", "com_error_cm", "mass_error_kg", "hazard_prob", "moments", "moments_z"):
         if k in s:
             row[k] = s[k]
     return row
+
+
+def moments_coverage(rows: list[dict]) -> dict | None:
+    """Per moment, the share of boxes whose truth lay within 1 and 1.96 stated std of the estimate (the
+    learned estimator's moments; None when no row has them)."""
+    zs = [r["moments_z"] for r in rows if r.get("moments_z")]
+    if not zs:
+        return None
+    return {
+        "boxes": len(zs),
+        **{
+            level: {q: float(np.mean([abs(z[q]) <= k for z in zs])) for q in zs[0]}
+            for level, k in (("0.683", 1.0), ("0.95", 1.959964))
+        },
+    }
 
 
 def _median_max(xs) -> dict:
@@ -193,6 +210,7 @@ def summarize(rows: list[dict]) -> dict:
         "max_balance_error_m": _median_max(
             r["max_balance_error_m"] for r in safe if r["outcome"] != "aborted"
         ),
+        "moments_coverage": moments_coverage(rows),
     }
 
 
@@ -414,6 +432,7 @@ def controller_from_settings(st: dict) -> ControllerConfig:
     """The ControllerConfig an evaluation ran with (its `settings(...)["controller"]`)."""
     c = dict(st["controller"])
     c.setdefault("explore_guard", None)  # evaluations written before the guard explored without one
+    c.setdefault("explore_guard_lead", 0)  # and before its lead, on the present balance error alone
     if c.get("sampling") is not None:
         c["sampling"] = SamplingOptions(**c["sampling"])
     if isinstance(c.get("pose_filter"), dict):

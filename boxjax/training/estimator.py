@@ -18,11 +18,14 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from boxjax import estimator as E
+from boxjax import massdist
 from boxjax.config import DEFAULT, Config
-from boxjax.estimator import explore, shipped
+from boxjax.estimator import explore, moments, shipped
+from boxjax.estimator.shipped import default_moments
 from boxjax.fileio import atomic_path
 from boxjax.training import dataset as ds
 from boxjax.training.randomise import SensorRandomisation, sensor_view
@@ -207,6 +210,7 @@ def evaluate_estimator(
     backend: str = "native",
     chunk: int = 500,
     progress: bool = True,
+    moments_path: str | os.PathLike | None = None,
 ) -> dict:
     """Accuracy of H on `n_boxes` fresh random boxes (the same box prior as training: hazardous with
     probability p_hazardous, see `boxjax.training.dataset`), simulated with the fixed exploration.
@@ -219,7 +223,8 @@ def evaluate_estimator(
     Returns:
       dict with iou_median, iou_mean, mass_rel_error_median, com_error_cm_median, hazard_precision,
       hazard_recall (None where undefined), boxes, plus mass_rel_error_mean, com_error_cm_mean,
-      hazard_true, hazard_pred, seed, weights, thresholds and seconds (simulate / predict).
+      hazard_true, hazard_pred, seed, weights, thresholds and seconds (simulate / predict); "moments":
+      the moments estimator (shipped, or `moments_path`) on the same explorations (`moments_report`).
     Raises:
       boxjax.estimator.CheckpointError for a missing, corrupt or incompatible checkpoint.
     """
@@ -228,6 +233,8 @@ def evaluate_estimator(
     path = shipped.SHIPPED_WEIGHTS if weights_path is None else Path(weights_path)
     model = E.load(path, expected_box_config=cfg.box)
     shipped.check_exploration(model, cfg, path)
+    # Loaded before the simulation: a bad file fails before any work.
+    moments_model = default_moments(cfg) if moments_path is None else moments.load(moments_path, cfg.box)[0]
     t0 = time.perf_counter()
     data = ds.generate(
         jax.random.fold_in(key, 1),
@@ -243,6 +250,7 @@ def evaluate_estimator(
     result = {
         "command": "estimator-eval",
         **metrics,
+        "moments": moments_report(moments_model, data, cfg),
         "hazard_precision_at_recall": hazard_operating_points(model, data),
         "seed": seed,
         "weights": str(path),
@@ -253,6 +261,22 @@ def evaluate_estimator(
         "total_s": time.perf_counter() - t_start,
     }
     return _json_safe(result)
+
+
+def moments_report(model: moments.MomentsModel, data: dict, cfg: Config = DEFAULT) -> dict:
+    """The moments estimator on explorations `data`: per quantity, the coverage of its stated std at
+    50 / 68.3 / 90 / 95 %, the median absolute error and the median stated std (QUANTITIES' units)."""
+    est = moments.predict_batch(model, jnp.asarray(data["traj"]), jnp.asarray(data["final"]))
+    est = moments.Moments(np.asarray(est.mean), np.asarray(est.std))
+    dists = massdist.MassDistribution(jnp.asarray(data["occupancy"]), jnp.asarray(data["total_mass"]))
+    truth = moments.true_moments_batch(dists, cfg.box)
+    err = np.abs(est.mean - truth)
+    return {
+        "coverage": moments.coverage(est, truth),
+        "median_abs_error": {q: float(np.median(err[:, i])) for i, q in enumerate(moments.QUANTITIES)},
+        "median_std": {q: float(np.median(est.std[:, i])) for i, q in enumerate(moments.QUANTITIES)},
+        "units": dict(zip(moments.QUANTITIES, moments.UNITS, strict=True)),
+    }
 
 
 def hazard_operating_points(model: E.EstimatorParams, data, recalls=(0.9, 0.95, 0.98)) -> dict:

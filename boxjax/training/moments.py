@@ -18,9 +18,11 @@ import numpy as np
 import optax
 
 from boxjax import massdist
-from boxjax.config import BoxConfig
+from boxjax.config import DEFAULT, BoxConfig, Config
+from boxjax.estimator import explore
 from boxjax.estimator import moments as M
 from boxjax.estimator import net as E
+from boxjax.training import dataset, wide
 
 
 def nll(net_k: list, x: jax.Array, y: jax.Array) -> jax.Array:
@@ -152,3 +154,37 @@ def train(
         "history": history,
     }
     return model, report
+
+
+def train_moments(
+    seed: int,
+    n_boxes: int,
+    out,
+    cfg: Config = DEFAULT,
+    *,
+    backend: str = "native",
+    chunk: int = 1000,
+    progress: bool = True,
+    log=print,
+) -> dict:
+    """Simulate the exploration of `n_boxes` boxes of the wide training mixture (`training.wide`), train
+    the moments estimator on them, save it to `out` (with the config's exploration sequence, so a
+    mismatched file is refused at load) and return the training report (no history)."""
+    key = jax.random.PRNGKey(seed)
+    t0 = time.time()
+    dists, _ = wide.sample_wide(jax.random.fold_in(key, 0), n_boxes, cfg)
+    data = dataset.simulate(cfg, dists, backend=backend, progress=progress, chunk=chunk)
+    simulate_s = time.time() - t0
+    model, report = train(jax.random.fold_in(key, 1), data, cfg.box, log=log)
+    report = {k: v for k, v in report.items() if k != "history"}
+    meta = {
+        "seed": seed,
+        "boxes": n_boxes,
+        "backend": backend,
+        "training_mixture": [list(s) for s in wide.WIDE_SHARES],
+        "exploration_actions": np.asarray(explore.exploration_actions(cfg)).tolist(),
+        "simulate_s": simulate_s,
+        "report": report,
+    }
+    M.save(out, model, meta)
+    return {**report, "simulate_s": simulate_s, "out": str(out)}
