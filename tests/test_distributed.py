@@ -68,7 +68,7 @@ def _run_two(cmd: list[str], out) -> list[str]:
 
 
 def test_two_processes_give_the_rows_of_one(tmp_path):
-    """Two processes with a localhost coordinator, each running its share of 4 boxes (one hazardous) one at
+    """Two processes with a localhost coordinator, each running its share of 3 boxes (one hazardous) one at
     a time, and process 0 writing them all: the same rows, balance traces and actions as one process on
     the same boxes (episodes cut at 60 control steps: the exploration and the first turning steps)."""
     cfg = tmp_path / "short.toml"
@@ -76,7 +76,7 @@ def test_two_processes_give_the_rows_of_one(tmp_path):
     args = [
         "evaluate",
         "--boxes",
-        "3",
+        "2",
         "--hazardous",
         "1",
         "--one-at-a-time",
@@ -95,7 +95,7 @@ def test_two_processes_give_the_rows_of_one(tmp_path):
         doc = json.loads((tmp_path / d / "evaluation.json").read_text())
         return [{k: v for k, v in r.items() if k not in ("wall_s", "plan_ms_median")} for r in doc["rows"]]
 
-    assert rows("two") == rows("one") and len(rows("one")) == 4
+    assert rows("two") == rows("one") and len(rows("one")) == 3
     assert {r["outcome"] for r in rows("one")} - {"step_cap", "aborted"} == set()  # cut short, no failure
     with np.load(tmp_path / "two" / "boxes.npz") as a, np.load(tmp_path / "one" / "boxes.npz") as b:
         for k in ("balance", "actions", "keys"):

@@ -155,8 +155,9 @@ def test_support_deficit_hand_computed():
 @pytest.mark.parametrize(
     "update, extra",
     [
-        ("mppi", {"gradient_steps": 0}),
-        ("cem", {"iterations": 2, "gradient_steps": 0}),
+        # MPPI and CEM are options, not the default: slow (11 s each), to keep the suite under 10 min
+        pytest.param("mppi", {"gradient_steps": 0}, marks=pytest.mark.slow),
+        pytest.param("cem", {"iterations": 2, "gradient_steps": 0}, marks=pytest.mark.slow),
         ("best", {"gradient_steps": 3, "n_knots": 3}),
     ],
 )
