@@ -156,3 +156,13 @@ def test_load_refuses_another_file_by_name(tmp_path):
         M.load(bad)
     with pytest.raises(M.MomentsError):
         M.load(tmp_path / "missing.npz")
+
+
+def test_a_config_the_shipped_moments_do_not_fit_runs_without_them():
+    from boxjax.config import BoxConfig
+    from boxjax.estimator import shipped
+
+    other = DEFAULT.replace(box=BoxConfig(size=(0.5, 0.3, 0.15)))
+    model, why = shipped.moments_for(other)
+    assert model is None and "0.5" in why and "train-moments" in why
+    assert shipped.moments_for(DEFAULT)[0] is not None

@@ -17,7 +17,13 @@ from boxjax.config import Config
 from boxjax.estimator import explore, hazard, moments
 from boxjax.estimator.io import load
 from boxjax.estimator.metrics import estimate as estimate_with
-from boxjax.estimator.shipped import default_estimator, default_moments, imperfect_sensor, sensor_estimator
+from boxjax.estimator.shipped import (
+    default_estimator,
+    default_moments,
+    imperfect_sensor,
+    moments_for,
+    sensor_estimator,
+)
 
 _predict_moments = jax.jit(moments.predict)
 
@@ -50,7 +56,7 @@ def oracle_estimator(truth: massdist.MassDistribution, cfg: Config) -> dict:
 
 
 def learned_estimator(
-    cfg: Config, weights: str | None = None, hazard_rule: str = "physics", with_moments: bool = True
+    cfg: Config, weights: str | None = None, hazard_rule: str = "physics", with_moments: bool | None = None
 ):
     """The learned H as a controller estimator: exploration dict -> {"distribution", "hazardous", ...}.
 
@@ -68,14 +74,20 @@ def learned_estimator(
     names the H that read the exploration ("shipped", "shipped_sensor" or the path given).
     with_moments: also read the box's physical moments with their calibrated std (the shipped
     `boxjax.estimator.moments` model; "moments" {quantity: {mean, std}} and "moments_text"), for a perfect
-    sensor only (the model was trained on exact explorations).
+    sensor only (the model was trained on exact explorations). None (default): when the shipped model fits
+    `cfg` (else the dict says why not in "moments_skipped"); True: required (MomentsError if it does not
+    fit); False: never.
     """
     if hazard_rule not in hazard.HAZARD_RULES:
         choices = ", ".join(hazard.HAZARD_RULES)
         raise ValueError(f"unknown hazard rule {hazard_rule!r}; choose one of {choices}")
 
     model = default_estimator(cfg) if weights is None else load(weights, expected_box_config=cfg.box)
-    moments_model = default_moments(cfg) if with_moments else None
+    moments_model, moments_skipped = None, None
+    if with_moments:
+        moments_model = default_moments(cfg)
+    elif with_moments is None:
+        moments_model, moments_skipped = moments_for(cfg)
     for_sensor = sensor_estimator(cfg) if weights is None else model  # loaded now: fails before any work
     applied = explore.applied_actions(cfg)
 
@@ -94,6 +106,8 @@ def learned_estimator(
         if moments_model is not None and not noisy:  # trained on exact explorations: not for a noisy sensor
             m = jax.tree.map(np.asarray, _predict_moments(moments_model, traj, final))
             out.update(moments=moments.as_dict(m), moments_text=moments.describe(m))
+        elif moments_skipped is not None:
+            out["moments_skipped"] = moments_skipped
         if hazard_rule != "head":
             a = hazard.assess(h, np.asarray(traj), np.asarray(final), hazard_rule)
             keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")

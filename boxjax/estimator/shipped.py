@@ -83,9 +83,26 @@ def _load_moments(path: str, cfg: Config) -> MomentsModel:
         raise MomentsError(
             f"{path}: trained on a different exploration sequence than this config's; retrain it"
         )
+    # The shipped file predates the field: it was trained for the default box.
+    size = meta.get("box_size", list(DEFAULT.box.size))
+    if not np.allclose(size, cfg.box.size):
+        raise MomentsError(f"{path}: trained for a {size} m box, this config's is {list(cfg.box.size)} m")
     return model
 
 
 def default_moments(cfg: Config = DEFAULT) -> MomentsModel:
     """The shipped moments estimator, loaded once per config; MomentsError if missing or incompatible."""
     return _load_moments(str(SHIPPED_MOMENTS), cfg)
+
+
+def moments_for(cfg: Config) -> tuple[MomentsModel | None, str | None]:
+    """(the shipped moments estimator, None) when it fits `cfg` (its grid and exploration sequence), else
+    (None, why not): a config of your own gripper or box grid runs without the moments until you train
+    them (`boxjax train-moments --config ...`)."""
+    try:
+        return default_moments(cfg), None
+    except MomentsError as e:
+        return (
+            None,
+            f"the shipped moments estimator does not fit this config ({e}); train one with train-moments",
+        )

@@ -25,7 +25,6 @@ from boxjax import estimator as E
 from boxjax import massdist
 from boxjax.config import DEFAULT, Config
 from boxjax.estimator import explore, moments, shipped
-from boxjax.estimator.shipped import default_moments
 from boxjax.fileio import atomic_path
 from boxjax.training import dataset as ds
 from boxjax.training.randomise import SensorRandomisation, sensor_view
@@ -234,7 +233,10 @@ def evaluate_estimator(
     model = E.load(path, expected_box_config=cfg.box)
     shipped.check_exploration(model, cfg, path)
     # Loaded before the simulation: a bad file fails before any work.
-    moments_model = default_moments(cfg) if moments_path is None else moments.load(moments_path, cfg.box)[0]
+    if moments_path is None:
+        moments_model, moments_skipped = shipped.moments_for(cfg)
+    else:
+        moments_model, moments_skipped = moments.load(moments_path, cfg.box)[0], None
     t0 = time.perf_counter()
     data = ds.generate(
         jax.random.fold_in(key, 1),
@@ -250,7 +252,11 @@ def evaluate_estimator(
     result = {
         "command": "estimator-eval",
         **metrics,
-        "moments": moments_report(moments_model, data, cfg),
+        "moments": (
+            moments_report(moments_model, data, cfg)
+            if moments_model is not None
+            else {"skipped": moments_skipped}
+        ),
         "hazard_precision_at_recall": hazard_operating_points(model, data),
         "seed": seed,
         "weights": str(path),

@@ -183,6 +183,7 @@ def train_moments(
         "backend": backend,
         "training_mixture": [list(s) for s in wide.WIDE_SHARES],
         "exploration_actions": np.asarray(explore.exploration_actions(cfg)).tolist(),
+        "box_size": list(cfg.box.size),
         "simulate_s": simulate_s,
         "report": report,
     }
