@@ -109,5 +109,6 @@ def test_learned_estimate_reads_the_moments_with_their_std(exploration):
     assert "planar radius of gyration" in est["moments_text"]
     # A noisy sensor: the moments model was trained on exact explorations, so it is not asked.
     noisy = {**exploration, "sensor": {"obs_noise_mm": 3.0, "drop_rate": 0.0}}
-    assert "moments" not in est_fn(noisy)
+    seen_noisy = est_fn(noisy)
+    assert "moments" not in seen_noisy and "noisy sensor" in seen_noisy["moments_skipped"]
     assert "moments" not in controller.learned_estimator(cfg, with_moments=False)(exploration)

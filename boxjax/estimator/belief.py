@@ -106,8 +106,10 @@ def learned_estimator(
         if moments_model is not None and not noisy:  # trained on exact explorations: not for a noisy sensor
             m = jax.tree.map(np.asarray, _predict_moments(moments_model, traj, final))
             out.update(moments=moments.as_dict(m), moments_text=moments.describe(m))
-        elif moments_skipped is not None:
-            out["moments_skipped"] = moments_skipped
+        elif moments_skipped is not None or moments_model is not None:
+            out["moments_skipped"] = moments_skipped or (
+                "the moments estimator was trained on exact explorations, not for this noisy sensor"
+            )
         if hazard_rule != "head":
             a = hazard.assess(h, np.asarray(traj), np.asarray(final), hazard_rule)
             keys = ("hazardous", "hazard_margin", "hazard_region", "hazard_explanation")
