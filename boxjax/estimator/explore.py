@@ -275,8 +275,9 @@ class Guarded:
     def tripped(self) -> bool:
         return self.recentring >= 0
 
-    def expected(self, s, balance_error) -> float:
-        """m, the balance error the guard judges: the present one, or (lead > 0) its extrapolation."""
+    def _judge(self, s, balance_error) -> float:
+        """m, the balance error the guard judges (the present one, or with lead > 0 its extrapolation);
+        records the state's signed balance error in `history`, so call it once per step."""
         b = abs(float(balance_error))
         s = np.asarray(s, np.float64)
         self.history.append(float(s[3] - 0.5 * (s[0] + s[1])))
@@ -292,7 +293,7 @@ class Guarded:
 
     def next(self, s, balance_error) -> np.ndarray | None:
         b = abs(float(balance_error))
-        judged = self.expected(s, balance_error)
+        judged = self._judge(s, balance_error)
         if not self.tripped and self.threshold is not None and judged > self.threshold:
             self.recentring, self.worst, self.judged = GUARD_STEPS, b, judged
         if self.tripped:

@@ -92,7 +92,12 @@ def true_moments(dist: massdist.MassDistribution, box: BoxConfig) -> jax.Array:
 
 def true_moments_batch(dists: massdist.MassDistribution, box: BoxConfig) -> np.ndarray:
     """(B, 8) `true_moments` of a batch of distributions."""
-    return np.asarray(jax.jit(jax.vmap(functools.partial(true_moments, box=box)))(dists))
+    return np.asarray(_true_moments_vmapped(box)(dists))
+
+
+@functools.cache
+def _true_moments_vmapped(box: BoxConfig):
+    return jax.jit(jax.vmap(functools.partial(true_moments, box=box)))
 
 
 def init_members(key: jax.Array, n_features: int, hidden: tuple[int, ...], members: int) -> list:
@@ -188,7 +193,7 @@ class Library(NamedTuple):
 
 def make_library(dists: massdist.MassDistribution, box: BoxConfig) -> Library:
     """The library of a batch of distributions (their exact moments and hazard regions)."""
-    region = jax.jit(jax.vmap(functools.partial(massdist.hazard_region, box=box)))(dists)
+    region = jax.vmap(functools.partial(massdist.hazard_region, box=box))(dists)
     return Library(jnp.asarray(true_moments_batch(dists, box)), jnp.asarray(region, jnp.int32))
 
 

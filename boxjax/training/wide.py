@@ -27,12 +27,18 @@ WIDE_SHARES = (
 )
 
 
-def _draw(family: str, hazardous, keys, box) -> massdist.MassDistribution:
+@functools.cache
+def _drawer(family: str, hazardous, box):
+    """The jitted, key-vmapped sampler of one family form (built once: a new jit per call re-traces)."""
     if hazardous is None:
         fn = functools.partial(massdist.sample_mixed, box=box, p_hazardous=0.25)
     else:
         fn = functools.partial(massdist.sampler(family, hazardous), box=box)
-    return jax.jit(jax.vmap(fn))(keys)
+    return jax.jit(jax.vmap(fn))
+
+
+def _draw(family: str, hazardous, keys, box) -> massdist.MassDistribution:
+    return _drawer(family, hazardous, box)(keys)
 
 
 def sample_wide(
