@@ -135,5 +135,13 @@ def test_guard_lead_trips_on_the_trend_before_the_threshold():
     assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3), [0.03] * 10) is None
     # Noise about a resting box: one large change alone (a frame off by 5 mm) does not trip it.
     assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3), [0.028, 0.028, 0.033, 0.028, 0.028]) is None
+    # A stated pose noise of 3 mm: two frames' difference counts only beyond 2 sqrt(2) x 3 mm, so a resting
+    # box seen jumping by 5 mm twice running does not trip it; the 1 cm-per-step swing is then mostly
+    # within the allowance, so the guard trips no earlier than on the present value.
+    jumpy = [0.020, 0.025, 0.030, 0.030, 0.030]
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3), jumpy) == 2
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3, noise=0.003), jumpy) is None
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3, noise=0.003), swing) == 5
+    assert _guard_trace(explore.Guarded(DEFAULT, 0.875, lead=3, noise=0.001), swing) == 4
     with pytest.raises(ValueError, match="lead must be >= 0"):
         explore.Guarded(DEFAULT, 0.875, lead=-1)

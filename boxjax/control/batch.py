@@ -306,7 +306,13 @@ def run_episodes(
     guard_m = ctrl.explore_guard if model is None else None
     guards = (
         [
-            explore.Guarded(cfg, guard_m, settle=r.world.exploration_delay, lead=ctrl.explore_guard_lead)
+            explore.Guarded(
+                cfg,
+                guard_m,
+                settle=r.world.exploration_delay,
+                lead=ctrl.explore_guard_lead,
+                noise=r.world.stated_noise_m,
+            )
             for r in rec
         ]
         if ctrl.explore
@@ -504,7 +510,13 @@ def replay_episode(
     late = faults.action_latency  # the action sent at step t is applied at t + late
     sent = np.concatenate([actions[late:], np.zeros((min(late, len(actions)), 4))])
     guard = (
-        explore.Guarded(cfg, ctrl.explore_guard, settle=world.exploration_delay, lead=ctrl.explore_guard_lead)
+        explore.Guarded(
+            cfg,
+            ctrl.explore_guard,
+            settle=world.exploration_delay,
+            lead=ctrl.explore_guard_lead,
+            noise=world.stated_noise_m,
+        )
         if ctrl.explore
         else None
     )

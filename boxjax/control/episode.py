@@ -231,6 +231,7 @@ def run_episode(
             ctrl.explore_guard if model is None else None,
             settle=world.exploration_delay,
             lead=ctrl.explore_guard_lead,
+            noise=world.stated_noise_m,
         )
         if ctrl.explore
         else None

@@ -73,6 +73,7 @@ class World:
         # set, and the share of dropped frames): the learned estimator chooses its H by it
         stated_mm = faults.obs_noise_mm if pose_filter.noise_mm is None else pose_filter.noise_mm
         self.sensor_spec = {"obs_noise_mm": float(stated_mm), "drop_rate": float(faults.drop_rate)}
+        self.stated_noise_m = float(stated_mm) / 1000  # the exploration guard's allowance (`explore.Guarded`)
         if not self.active:
             self.sensor = self.actuator = self.filter = self.shift = None
             return
