@@ -124,6 +124,10 @@ def test_estimator_eval_on_mjx(capsys):
         (["simulate", "--policy", "random", "--speed", "0.1"], "--speed is an option of --policy naive"),
         (["simulate", "--steps", "0"], "--steps must be >= 1, got 0"),
         (["evaluate", "--force"], "--force does nothing without --out"),
+        (
+            ["evaluate", "--planner", "paper", "--slow-when-late", "3"],
+            "--slow-when-late is an option of the sampling planner",
+        ),
         (["evaluate", "--hazard-family", "items"], "does nothing with --hazardous 0"),
         (["evaluate", "--box", "b.npz", "--hazardous", "3"], "--hazardous does nothing with --box"),
         (["evaluate", "--weights", "h.npz"], "--weights is an option of --estimator learned"),

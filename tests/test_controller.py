@@ -63,3 +63,46 @@ def test_papers_one_step_planner_turns_uniform_box():
     ctrl = ControllerConfig(planner="paper")
     res = run_episode(CFG, massdist.named("uniform", CFG.box), jax.random.PRNGKey(0), ctrl=ctrl)
     assert res.summary["success"], res.summary
+
+
+def test_a_late_loop_slows_the_sampling_planner_by_the_delay_rule(monkeypatch):
+    """Past `delay_reference` steps of delay the sampling planner's caps shrink by (1 + ref) / (1 + delay);
+    at or under it, with the paper planner or with the rule off, the controller is unchanged. The
+    episode builds its planner from the world's delay (4 steps of sensor latency here)."""
+    from boxjax.control import episode
+    from boxjax.control.config import for_delay
+    from boxjax.planners import sampling
+    from boxjax.sim.faults import Faults
+
+    ctrl = ControllerConfig()
+    assert for_delay(CFG, ctrl, 2) is ctrl and for_delay(CFG, ctrl, 0) is ctrl
+    assert for_delay(CFG, ControllerConfig(planner="paper"), 9).planner == "paper"
+    assert for_delay(CFG, ControllerConfig(delay_reference=None), 9).sampling is None
+    late = for_delay(CFG, ctrl, 4).sampling
+    assert late.speed_cap == pytest.approx(0.12 * 3 / 5)
+    assert late.position_cap == pytest.approx(CFG.gripper.max_position_step * 3 / 5)
+    assert late.horizon == sampling.SamplingOptions().horizon  # the rest of the options kept
+    hi = np.asarray(
+        sampling.clip_actions(np.full(4, 1.0, np.float32), CFG, late.speed_cap, 0.0, late.position_cap)
+    )
+    np.testing.assert_allclose(hi, [late.speed_cap, late.speed_cap, late.position_cap, late.position_cap])
+    with pytest.raises(ValueError, match="delay_reference"):
+        ControllerConfig(delay_reference=-1)
+    with pytest.raises(ValueError, match="position_cap"):
+        sampling.SamplingOptions(position_cap=0.0)
+
+    built = []
+
+    class Built(Exception):
+        pass
+
+    def spy(cfg, c):
+        built.append(c)
+        raise Built
+
+    monkeypatch.setattr(episode, "make_planner", spy)
+    with pytest.raises(Built):
+        run_episode(
+            CFG, massdist.named("uniform", CFG.box), jax.random.PRNGKey(0), faults=Faults(obs_latency=4)
+        )
+    assert built[0].sampling.position_cap == pytest.approx(late.position_cap)

@@ -178,6 +178,23 @@ def output_options(p: argparse.ArgumentParser, plot_help: str, animate: bool = T
     p.add_argument("--json", action="store_true", help="print the summary as one JSON line")
 
 
+def steps_or_off(text: str) -> int | None:
+    """--slow-when-late: a whole number of control steps >= 0, or "off" (None)."""
+    if text.strip().lower() == "off":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of control steps or 'off', got {text!r}"
+        ) from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of control steps >= 0 or 'off', got {value}"
+        )
+    return value
+
+
 def guard_value(text: str) -> float:
     """--explore-guard: a fraction of the balance limit in (0, 1), or "off" (0.0, which the controller
     config reads as None)."""
@@ -326,4 +343,14 @@ def fault_options(p: argparse.ArgumentParser, *used_by: Condition) -> None:
         choices=("on", "off"),
         used_by=used_by,
         help="the runtime safety monitor between the planner and the gripper (off: the paper's controller)",
+    )
+    option(
+        p,
+        "--slow-when-late",
+        type=steps_or_off,
+        default=2,
+        metavar="N|off",
+        used_by=(*used_by, when("planner", "sampling", owner="the sampling planner")),
+        help="past this many control steps of delay (sensor latency + action latency) the sampling planner's "
+        "belt-speed and carriage-step caps shrink by (1 + N) / (1 + delay); off: never",
     )

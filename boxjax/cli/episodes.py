@@ -155,6 +155,7 @@ def _controller_config(args):
         explore_guard_lead=args.guard_lead,
         friction_set=tuple(args.friction_set) if getattr(args, "friction_set", None) else None,
         monitor=monitor.OFF if getattr(args, "monitor", "on") == "off" else monitor.MonitorConfig(),
+        delay_reference=getattr(args, "slow_when_late", 2),
     )
 
 

@@ -54,7 +54,7 @@ from boxjax import geometry, massdist, planning
 from boxjax.config import Config
 from boxjax.control import episode as controller
 from boxjax.control import monitor
-from boxjax.control.config import ControllerConfig
+from boxjax.control.config import ControllerConfig, for_delay
 from boxjax.control.episode import EpisodeResult
 from boxjax.control.models import planning_model
 from boxjax.control.monitor import Monitor
@@ -367,7 +367,7 @@ def run_episodes(
 
     # 5. the MPC, `slots` boxes per planner call
     if queue:
-        init_b, optimize_b = batched_planner(cfg, ctrl)
+        init_b, optimize_b = batched_planner(cfg, for_delay(cfg, ctrl, delay))  # slower when late
         put, n_dev = _sharding()
         slots = SLOTS_PER_DEVICE * n_dev if slots is None else slots
         width = -(-min(slots, len(queue)) // n_dev) * n_dev  # a multiple of the devices: equal shards

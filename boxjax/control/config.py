@@ -11,6 +11,7 @@ from boxjax.control.state_estimate import FilterConfig
 from boxjax.planners import paper as planner
 from boxjax.planners import registry
 from boxjax.planners.registry import PLANNERS  # noqa: F401 (the built-in planner names, for the CLI)
+from boxjax.planners.sampling import SamplingOptions
 
 BELIEFS = ("mean", "ensemble")  # the planner's model: on the estimate, or on each of H's members
 
@@ -73,8 +74,24 @@ class ControllerConfig:
     # The runtime safety monitor between the planner and the gripper (`boxjax.control.monitor`; on by
     # default, `MonitorConfig(enabled=False)` or `monitor.OFF`: the paper's controller, which has none).
     monitor: MonitorConfig = MonitorConfig()
+    # The loop's delay (`World.delay`: the sensor's latency the controller predicts over, plus the drives')
+    # beyond which the sampling planner slows down: past `delay_reference` control steps its belt-speed and
+    # carriage-step caps shrink by (1 + delay_reference) / (1 + delay) (`for_delay`), so that what the
+    # gripper does before the controller can see it stays what it is at delay_reference steps. Why: at 4
+    # steps (200 ms) the crossings the monitor missed came from full-speed carriage moves whose drag the
+    # prior mispredicts, unseen for 4 steps; at 2 steps it noticed every one. At 4 steps: crossings 6 -> 0,
+    # turned 84 -> 75 of 100, the rest at the step cap, balanced (docs/results/faults.md, "Latency: a
+    # late loop slows the planner"). None: never (the paper's planner is never slowed).
+    delay_reference: int | None = 2
 
     def __post_init__(self):
+        if self.delay_reference is not None and not (
+            isinstance(self.delay_reference, int) and self.delay_reference >= 0
+        ):
+            raise ValueError(
+                "delay_reference must be a whole number of control steps >= 0 or None, got "
+                f"{self.delay_reference}"
+            )
         if self.explore_guard_lead < 0:
             raise ValueError(f"explore_guard_lead must be >= 0 control steps, got {self.explore_guard_lead}")
         if self.explore_guard is not None and not 0 < self.explore_guard < 1:
@@ -146,3 +163,25 @@ class ControllerConfig:
     def prior_settings(self) -> prior.PriorParams | tuple:
         """The PriorParams the planner's prior is built with (a tuple: a mixture of priors)."""
         return self.prior_params if self.prior_params is not None else prior.PriorParams(variant=self.variant)
+
+
+def for_delay(cfg, ctrl: ControllerConfig, delay: int) -> ControllerConfig:
+    """The controller for a loop `delay` control steps late (`ControllerConfig.delay_reference`): the same,
+    or, past the reference and with the sampling planner, its belt-speed and carriage-step caps scaled by
+    (1 + delay_reference) / (1 + delay)."""
+    ref = ctrl.delay_reference
+    if ref is None or delay <= ref or ctrl.planner != "sampling":
+        return ctrl
+    from_opts = ctrl.sampling or SamplingOptions()
+    g = cfg.gripper
+    scale = (1 + ref) / (1 + delay)
+    speed = (
+        g.belt_speed_limit if from_opts.speed_cap is None else min(from_opts.speed_cap, g.belt_speed_limit)
+    )
+    step = (
+        g.max_position_step
+        if from_opts.position_cap is None
+        else min(from_opts.position_cap, g.max_position_step)
+    )
+    opts = dataclasses.replace(from_opts, speed_cap=scale * speed, position_cap=scale * step)
+    return dataclasses.replace(ctrl, sampling=opts)

@@ -21,7 +21,7 @@ import numpy as np
 from boxjax import geometry, massdist, planning, task
 from boxjax.config import Config
 from boxjax.control import monitor
-from boxjax.control.config import ControllerConfig
+from boxjax.control.config import ControllerConfig, for_delay
 from boxjax.control.models import planning_model
 from boxjax.control.monitor import Monitor
 from boxjax.control.monitor import crossing as monitor_crossing
@@ -264,7 +264,7 @@ def run_episode(
         # 4. physics-prior MPC
         if model is None:
             model = planning_model(cfg, ctrl, belief, force_map, est)
-        mpc = make_planner(cfg, ctrl)
+        mpc = make_planner(cfg, for_delay(cfg, ctrl, world.delay))  # slower when the loop is late
         window = first_window(exploration["s"])
 
         def observe(state):

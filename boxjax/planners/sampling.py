@@ -91,6 +91,7 @@ class SamplingOptions:
     speed_sigma: float = 0.04  # m/s, std of the perturbation of each belt-speed setpoint
     position_sigma: float = 0.004  # m, std of the perturbation of each position step
     speed_cap: float | None = 0.12  # m/s, |setpoint| limit (None: the belt speed limit); see below
+    position_cap: float | None = None  # m, |carriage step| limit per control step (None: the hardware's)
     w_yaw: float = 1.0
     w_balance: float = 0.5
     w_barrier: float = 1000.0
@@ -161,6 +162,10 @@ class SamplingOptions:
             raise ValueError(f"w_reach must be >= 0, got {self.w_reach}")
         if min(self.speed_sigma, self.position_sigma) < 0 or not 0 < self.safe_fraction <= 1:
             raise ValueError("sigmas must be >= 0 and safe_fraction in (0, 1]")
+        for name in ("speed_cap", "position_cap"):
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ValueError(f"{name} must be > 0 or None, got {v}")
 
 
 class SamplingInfo(NamedTuple):
@@ -208,12 +213,19 @@ def shift_nominal(nominal) -> jax.Array:
     return jnp.concatenate([nominal[1:], nominal[-1:]], axis=0)
 
 
-def clip_actions(actions, cfg: Config, speed_cap: float | None = None, position_deadband: float = 0.0):
-    """Clip (..., 4) actions to the hardware (and the planner's speed cap); position steps smaller than
-    `position_deadband` (m) become 0."""
+def clip_actions(
+    actions,
+    cfg: Config,
+    speed_cap: float | None = None,
+    position_deadband: float = 0.0,
+    position_cap: float | None = None,
+):
+    """Clip (..., 4) actions to the hardware (and the planner's speed and carriage-step caps); position
+    steps smaller than `position_deadband` (m) become 0."""
     g = cfg.gripper
     vmax = g.belt_speed_limit if speed_cap is None else min(speed_cap, g.belt_speed_limit)
-    hi = jnp.array([vmax, vmax, g.max_position_step, g.max_position_step], jnp.float32)
+    pmax = g.max_position_step if position_cap is None else min(position_cap, g.max_position_step)
+    hi = jnp.array([vmax, vmax, pmax, pmax], jnp.float32)
     a = jnp.clip(actions, -hi, hi)
     if position_deadband > 0:
         dp = a[..., 2:]
@@ -394,7 +406,7 @@ def refine_gradient(model, window, belt_speed, target_yaw, seq, cfg: Config, o: 
         better = jnp.isfinite(c) & (c < best_c)
         best_z, best_c = jnp.where(better, z, best_z), jnp.where(better, c, best_c)
         upd, state = opt.update(g, state, z)
-        z = clip_actions(optax.apply_updates(z, upd) * scale, cfg, o.speed_cap) / scale
+        z = clip_actions(optax.apply_updates(z, upd) * scale, cfg, o.speed_cap, 0.0, o.position_cap) / scale
         return (z, state, best_z, best_c), None
 
     z0 = seq / scale
@@ -428,7 +440,11 @@ def plan(
     for it in range(o.iterations):
         noise = perturbations(keys[it], o) * sigma
         seqs = clip_actions(
-            jnp.concatenate([mean[None], mean[None] + noise]), cfg, o.speed_cap, o.position_deadband
+            jnp.concatenate([mean[None], mean[None] + noise]),
+            cfg,
+            o.speed_cap,
+            o.position_deadband,
+            o.position_cap,
         )
         states, cost = evaluate_sequences(model, window, belt_speed, target_yaw, seqs, cfg, o, key_p)
         costs.append(cost)
@@ -439,7 +455,7 @@ def plan(
         best_cost = jnp.where(better, cost[i], best_cost)
         mean, sigma = (seqs[i], sigma) if o.update == "best" else _update(seqs, cost, sigma, o)
     if o.update != "best":  # score the final mean too
-        mean = clip_actions(mean, cfg, o.speed_cap, o.position_deadband)
+        mean = clip_actions(mean, cfg, o.speed_cap, o.position_deadband, o.position_cap)
         st_m, c_m = evaluate_sequences(model, window, belt_speed, target_yaw, mean[None], cfg, o, key_p)
         better = c_m[0] < best_cost
         best_seq, best_states = jnp.where(better, mean, best_seq), jnp.where(better, st_m[0], best_states)
@@ -447,7 +463,7 @@ def plan(
     if o.gradient_steps > 0:
         seq_g, _ = refine_gradient(model, window, belt_speed, target_yaw, best_seq, cfg, o, key_p)
         # The deadband is not differentiable: apply it to the refined sequence and score what is sent.
-        seq_g = clip_actions(seq_g, cfg, o.speed_cap, o.position_deadband)
+        seq_g = clip_actions(seq_g, cfg, o.speed_cap, o.position_deadband, o.position_cap)
         st_g, c_g = evaluate_sequences(model, window, belt_speed, target_yaw, seq_g[None], cfg, o, key_p)
         better = c_g[0] < best_cost
         best_seq, best_states = jnp.where(better, seq_g, best_seq), jnp.where(better, st_g[0], best_states)
