@@ -8,7 +8,7 @@ in `boxjax.planners.registry`; both are re-exported here for convenience.
 """
 
 from boxjax.control.batch import replay_episode, run_episodes
-from boxjax.control.config import BELIEFS, PLANNERS, ControllerConfig
+from boxjax.control.config import BELIEFS, PLANNERS, ControllerConfig, for_delay
 from boxjax.control.episode import (
     EpisodeResult,
     env_for,
@@ -30,6 +30,7 @@ __all__ = [
     "env_for",
     "episode_summary",
     "first_window",
+    "for_delay",
     "hazard_explanation",
     "learned_estimator",
     "make_planner",

@@ -128,8 +128,10 @@ class RobotLoop:
 
     Args:
       plan_step: observation (planning.Observation: window (3, 5), belt_speed (2,), target_yaw) ->
-        action (4,); e.g. `PlannerStep(make_planner(cfg, ctrl), model, key)`. Exceptions it raises pass
-        through (the robot's own command timeout then stops the belts).
+        action (4,); e.g. `PlannerStep(make_planner(cfg, for_delay(cfg, ctrl, delay)), model, key)`, where
+        `delay` is the loop's latency in control steps (`control.for_delay` slows the sampling planner
+        past `ControllerConfig.delay_reference`, as the simulated controller does). Exceptions it raises
+        pass through (the robot's own command timeout then stops the belts).
       cfg: the adapter's conventions and limits.
       target_yaw: rad in the conveyor frame; None: the first observed yaw + `turn`.
       turn: rad, the turn to make (TaskConfig.target_yaw_delta, pi / 2).
