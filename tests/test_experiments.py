@@ -259,6 +259,11 @@ def test_controller_settings_round_trip():
     robust = ControllerConfig(friction_set=(0.35, 0.5, 0.65))
     st = json.loads(json.dumps(experiments.settings("oracle", robust, 1, "gaussian")))
     assert experiments.controller_from_settings(st) == robust
+    late = ControllerConfig(delay_reference=3)
+    st = json.loads(json.dumps(experiments.settings("oracle", late, 1, "gaussian")))
+    assert experiments.controller_from_settings(st) == late
+    del st["controller"]["delay_reference"]  # written before a late loop slowed the planner: it never did
+    assert experiments.controller_from_settings(st).delay_reference is None
 
 
 def test_the_controllers_prior_settings_reach_the_planners_model():

@@ -433,6 +433,7 @@ def controller_from_settings(st: dict) -> ControllerConfig:
     c = dict(st["controller"])
     c.setdefault("explore_guard", None)  # evaluations written before the guard explored without one
     c.setdefault("explore_guard_lead", 0)  # and before its lead, on the present balance error alone
+    c.setdefault("delay_reference", None)  # and before a late loop slowed the planner
     if c.get("sampling") is not None:
         c["sampling"] = SamplingOptions(**c["sampling"])
     if isinstance(c.get("pose_filter"), dict):
