@@ -59,7 +59,6 @@ from boxjax.control.episode import EpisodeResult
 from boxjax.control.models import planning_model
 from boxjax.control.monitor import Monitor
 from boxjax.control.world import World
-from boxjax.estimator import explore
 from boxjax.estimator.belief import decide
 from boxjax.planners.registry import make_planner
 from boxjax.sim.episode import EpisodeTrace
@@ -305,18 +304,7 @@ def run_episodes(
     n_explore = np.zeros(B, np.int32)
     guard_m = ctrl.explore_guard if model is None else None
     guards = (
-        [
-            explore.Guarded(
-                cfg,
-                guard_m,
-                settle=r.world.exploration_delay,
-                lead=ctrl.explore_guard_lead,
-                noise=r.world.stated_noise_m,
-            )
-            for r in rec
-        ]
-        if ctrl.explore
-        else []
+        [controller.guarded_exploration(cfg, ctrl, r.world, guard_m) for r in rec] if ctrl.explore else []
     )
     exploring = np.full(B, bool(guards))
     while exploring.any():
@@ -509,17 +497,7 @@ def replay_episode(
     actions = np.asarray(actions, np.float64).reshape(-1, 4)
     late = faults.action_latency  # the action sent at step t is applied at t + late
     sent = np.concatenate([actions[late:], np.zeros((min(late, len(actions)), 4))])
-    guard = (
-        explore.Guarded(
-            cfg,
-            ctrl.explore_guard,
-            settle=world.exploration_delay,
-            lead=ctrl.explore_guard_lead,
-            noise=world.stated_noise_m,
-        )
-        if ctrl.explore
-        else None
-    )
+    guard = controller.guarded_exploration(cfg, ctrl, world, ctrl.explore_guard)
     exploring, n_explore, lost = guard is not None, 0, False
     decided: tuple = ({}, None, None)
 

@@ -79,6 +79,22 @@ def first_window(s) -> list:
     return window
 
 
+def guarded_exploration(cfg: Config, ctrl: ControllerConfig, world: World, fraction: float | None):
+    """The exploration of one box behind its guard (`explore.Guarded`: trips at `fraction` of the balance
+    limit, None: never; looks `ctrl.explore_guard_lead` steps ahead, discounting the sensor's stated noise,
+    and rests for the world's delay at the end), or None when the controller does not explore. Every path
+    that explores (`run_episode`, the batched episodes, their replay) builds it here."""
+    if not ctrl.explore:
+        return None
+    return explore.Guarded(
+        cfg,
+        fraction,
+        settle=world.exploration_delay,
+        lead=ctrl.explore_guard_lead,
+        noise=world.stated_noise_m,
+    )
+
+
 def timed_calls(plan_ms: list) -> list:
     """The planning times worth a median: all but the first call, which compiles (unless it is alone)."""
     return plan_ms[1:] if len(plan_ms) > 1 else plan_ms
@@ -225,17 +241,7 @@ def run_episode(
 
     # 1. exploration (paper §2.2): a fixed open-loop sequence, guarded (`explore.Guarded`)
     n_explore = 0
-    guard = (
-        explore.Guarded(
-            cfg,
-            ctrl.explore_guard if model is None else None,
-            settle=world.exploration_delay,
-            lead=ctrl.explore_guard_lead,
-            noise=world.stated_noise_m,
-        )
-        if ctrl.explore
-        else None
-    )
+    guard = guarded_exploration(cfg, ctrl, world, ctrl.explore_guard if model is None else None)
     guard_steps: list[int] = []  # control steps of the guard's re-centring (a stop, for `crossing`)
     while guard is not None and not bool(state.done):
         s_seen = seen[-1][0]  # with a perfect sensor the true state, and its balance error as the env has it

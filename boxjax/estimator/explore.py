@@ -286,7 +286,7 @@ class Guarded:
         records the state's signed balance error in `history`, so call it once per step."""
         b = abs(float(balance_error))
         s = np.asarray(s, np.float64)
-        self.history.append(float(s[3] - 0.5 * (s[0] + s[1])))
+        self.history.append(float(geometry.balance_offset(s)))
         if self.lead == 0 or len(self.history) < 3:
             return b
         h, side = self.history, (1.0 if self.history[-1] >= 0 else -1.0)
