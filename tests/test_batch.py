@@ -154,7 +154,7 @@ def test_batched_planner_shards_boxes_over_forced_host_devices():
 
 
 def test_sharding_splits_the_box_axis_when_there_are_several_devices():
-    put, n = batch._sharding()
+    put, n = batch.box_sharding()
     assert n == len(jax.local_devices())
     x = put(np.zeros((2 * n, 3)))
     assert np.asarray(x).shape == (2 * n, 3)

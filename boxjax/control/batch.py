@@ -116,7 +116,7 @@ def batched_planner(cfg: Config, ctrl: ControllerConfig):
 
 def use_host_devices(n: int | None = None) -> int:
     """Ask JAX for `n` host (CPU) devices (default: one per core) so that batched episodes shard their
-    boxes over the cores (`_sharding`). Must run before JAX starts its backend; afterwards (or on an
+    boxes over the cores (`box_sharding`). Must run before JAX starts its backend; afterwards (or on an
     accelerator, where the devices are what they are) it changes nothing. Returns the local devices."""
     n = n or os.cpu_count() or 1
     try:
@@ -126,7 +126,7 @@ def use_host_devices(n: int | None = None) -> int:
     return len(jax.local_devices())
 
 
-def _sharding():
+def box_sharding():
     """(put, n): `put(tree)` places a batch's arrays split along their leading (box) axis over the n
     local devices (`jax.sharding`; identity for one device), so the vmapped planner runs one shard per
     device. On a CPU, `jax.config.update("jax_num_cpu_devices", k)` before JAX starts gives k host
@@ -139,7 +139,7 @@ def _sharding():
     return (lambda tree: jax.device_put(tree, sharding)), len(devices)
 
 
-def _as_key(key):
+def as_key(key):
     """A typed PRNG key from a typed key or raw uint32 key data (`jax.random.PRNGKey`)."""
     key = jnp.asarray(key) if not isinstance(key, jax.Array) else key
     if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
@@ -147,12 +147,12 @@ def _as_key(key):
     return jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
 
 
-def _stack(trees):
+def stack(trees):
     return jax.tree.map(lambda *x: jnp.stack(x), *trees)
 
 
 @functools.partial(jax.jit, donate_argnums=0)
-def _set_slot(batch, k, tree):
+def set_slot(batch, k, tree):
     """`batch` with slot k replaced by `tree`, in place: the batch's buffers are donated, so replacing
     one box's W (2.45e6 parameters) does not copy the other boxes' models."""
     return jax.tree.map(lambda b, x: b.at[k].set(x), batch, tree)
@@ -282,12 +282,12 @@ def run_episodes(
         raise ValueError(f"unknown order {order!r}; choose one of {ORDERS}")
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
-    split = [jax.random.split(_as_key(k)) for k in keys]
+    split = [jax.random.split(as_key(k)) for k in keys]
     key_reset = [k[0] for k in split]
     key_plan = [k[1] for k in split]
     sim = NativeBatch(cfg, truths, key_reset)
     rec = [
-        _Record(sim, b, World(cfg, faults, ctrl.pose_filter, _as_key(keys[b]), truths[b])) for b in range(B)
+        _Record(sim, b, World(cfg, faults, ctrl.pose_filter, as_key(keys[b]), truths[b])) for b in range(B)
     ]
     delay = rec[0].world.delay
     results: list[EpisodeResult | None] = [None] * B
@@ -356,7 +356,7 @@ def run_episodes(
     # 5. the MPC, `slots` boxes per planner call
     if queue:
         init_b, optimize_b = batched_planner(cfg, for_delay(cfg, ctrl, delay))  # slower when late
-        put, n_dev = _sharding()
+        put, n_dev = box_sharding()
         slots = SLOTS_PER_DEVICE * n_dev if slots is None else slots
         width = -(-min(slots, len(queue)) // n_dev) * n_dev  # a multiple of the devices: equal shards
         windows = {b: controller.first_window(np.stack([s for s, _ in rec[b].seen])) for b in queue}
@@ -383,7 +383,7 @@ def run_episodes(
 
         first = queue[0]
         slot_box: list[int | None] = [None] * width
-        model_b = put(_stack([models[first]] * width))
+        model_b = put(stack([models[first]] * width))
         plan_b = init_b(observations([first] * width, model_b))
         keys_b = put(jnp.stack([key_plan[first]] * width))
 
@@ -391,10 +391,10 @@ def run_episodes(
             nonlocal model_b, plan_b, keys_b
             b = queue.popleft()
             slot_box[k] = b
-            model_b = put(_set_slot(model_b, k, models[b]))
-            one = put(_stack([models[b]] * n_dev)) if delay else None  # for the compensation only
+            model_b = put(set_slot(model_b, k, models[b]))
+            one = put(stack([models[b]] * n_dev)) if delay else None  # for the compensation only
             first_plan = jax.tree.map(lambda x: x[0], init_b(observations([b] * n_dev, one)))
-            plan_b = put(_set_slot(plan_b, k, first_plan))
+            plan_b = put(set_slot(plan_b, k, first_plan))
             keys_b = put(keys_b.at[k].set(key_plan[b]))
             if ctrl.monitor.enabled:
                 rec[b].monitor = Monitor(cfg, ctrl.monitor, delay)
@@ -410,7 +410,7 @@ def run_episodes(
                     continue
                 t0 = time.perf_counter()
                 models[b] = adapter(models[b], r.exploration())
-                model_b = put(_set_slot(model_b, k, models[b]))
+                model_b = put(set_slot(model_b, k, models[b]))
                 r.adapt_s += time.perf_counter() - t0
                 r.adaptations += 1
             obs_b = observations([b if b is not None else live[0] for b in slot_box], model_b)
@@ -490,9 +490,9 @@ def replay_episode(
         controller's (guarded) exploration sends (another box, key, config or faults).
     """
     t0 = time.perf_counter()
-    key_reset, _ = jax.random.split(_as_key(key))
+    key_reset, _ = jax.random.split(as_key(key))
     sim = NativeBatch(cfg, [truth], [key_reset])
-    world = World(cfg, faults, ctrl.pose_filter, _as_key(key), truth)
+    world = World(cfg, faults, ctrl.pose_filter, as_key(key), truth)
     rec = _Record(sim, 0, world)
     actions = np.asarray(actions, np.float64).reshape(-1, 4)
     late = faults.action_latency  # the action sent at step t is applied at t + late

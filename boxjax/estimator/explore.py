@@ -320,18 +320,20 @@ class Guarded:
         """The refusal's explanation (None: not tripped)."""
         if not self.tripped:
             return None
-        ahead = (
-            f" and moving away, {100 * self.judged:.1f} cm expected {self.lead} steps ahead"
-            if self.judged > self.worst
-            else ""
-        )
-        return (
-            f"refused during the exploration: after {self.k} of its {len(self.actions)} fixed steps the "
-            f"box's geometric centre was {100 * self.worst:.1f} cm off the belts' midline{ahead} (guard "
-            f"{100 * self.threshold:.1f} cm, limit {100 * self.cfg.task.balance_limit:.1f} cm); the belts "
-            "stopped and the carriages re-centred under it. The fixed exploration cannot hold this box, "
-            "so neither its estimate nor a turn is attempted."
-        )
+        return guard_explanation(self.cfg, self.k, self.worst, self.judged, self.lead, self.threshold)
+
+
+def guard_explanation(cfg: Config, k: int, worst: float, judged: float, lead: int, threshold: float) -> str:
+    """The exploration guard's refusal in words: it tripped after `k` fixed steps with the box `worst` (m)
+    off the midline, judged `judged` (m) `lead` steps ahead, against `threshold` (m)."""
+    ahead = f" and moving away, {100 * judged:.1f} cm expected {lead} steps ahead" if judged > worst else ""
+    return (
+        f"refused during the exploration: after {k} of its {N_STEPS} fixed steps the "
+        f"box's geometric centre was {100 * worst:.1f} cm off the belts' midline{ahead} (guard "
+        f"{100 * threshold:.1f} cm, limit {100 * cfg.task.balance_limit:.1f} cm); the belts "
+        "stopped and the carriages re-centred under it. The fixed exploration cannot hold this box, "
+        "so neither its estimate nor a turn is attempted."
+    )
 
 
 def align(data: dict, delay: int, n_steps: int) -> dict:
@@ -370,6 +372,7 @@ __all__ = [
     "applied_actions",
     "describe_effect",
     "exploration_actions",
+    "guard_explanation",
     "recentre_action",
     "run",
     "trajectory",
