@@ -467,6 +467,12 @@ def cmd_evaluate(args) -> dict:
     if main and args.plot:
         check_writable_dir(os.path.dirname(os.path.abspath(args.plot)), "--plot's directory")
     ctrl = _controller_config(args)
+    if args.backend == "mjx":
+        from boxjax.control import device_loop
+
+        why = device_loop.supports(ctrl, faults)
+        if why is not None:
+            raise ValueError(f"--backend mjx cannot run these episodes: {why}")
     if args.coordinator:  # the settings are checked: join the other processes (before JAX starts its backend)
         distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     if not args.one_at_a_time:
@@ -490,6 +496,7 @@ def cmd_evaluate(args) -> dict:
             batched=False if args.one_at_a_time else None,
             slots=args.slots,
             faults=faults,
+            backend=args.backend,
         )
     summary = {"command": "evaluate", **ev.summary}
     if args.config:
@@ -677,11 +684,20 @@ def add_parsers(sub) -> None:
     )
     option(
         v,
+        "--backend",
+        default="native",
+        choices=BACKENDS,
+        used_by=(no_file, without("one_at_a_time", "the episodes run one by one on native MuJoCo")),
+        help="native: MuJoCo on the host, the planner batched (default); mjx: the whole closed loop on the "
+        "device (boxjax.control.device_loop; no faults)",
+    )
+    option(
+        v,
         "--slots",
         type=int,
         used_by=(batchable, no_file, without("one_at_a_time", "the episodes run one by one")),
         check=at_least(1),
-        help="boxes per batched planner call (default 8)",
+        help="boxes per batched planner call (default 8 per device; with --backend mjx 64 per device)",
     )
     option(
         v,

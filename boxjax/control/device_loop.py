@@ -23,7 +23,7 @@ with or without the monitor (not in shadow mode), in the world MJX simulates: th
 latency, the controller's friction the simulator's (faults are the native backend's: `batch`). MJX's
 contact solver is not native MuJoCo's, and slip makes episodes chaotic, so episodes differ from the native
 backend's; their statistics are compared in docs/results/batched-episodes.md. Every episode's actions are
-kept; `replay_episode` re-simulates one with MJX.
+kept; `batch.replay_episode(..., backend="mjx")` re-simulates one with MJX.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import massdist, planning
+from boxjax import planning
 from boxjax.config import Config
 from boxjax.control import batch, monitor, monitor_pure
 from boxjax.control import episode as controller
@@ -359,6 +359,7 @@ def run_episodes(
         batch_slots = put(batch_slots)
         while any(b is not None for b in slot_box):
             batch_slots, rec = turn_b(batch_slots)
+            batch_slots = put(batch_slots)  # XLA returns MJX's empty arrays replicated: keep one layout
             rec = _host(rec)
             active = np.asarray(batch_slots.active)
             ended = [k for k, b in enumerate(slot_box) if b is not None and not active[k]]
@@ -373,7 +374,9 @@ def run_episodes(
             for k in ended:
                 b = slot_box[k]
                 if bad[k]:
-                    raise RuntimeError(f"the planner produced a non-finite action for box {b}; it was stopped")
+                    raise RuntimeError(
+                        f"the planner produced a non-finite action for box {b}; it was stopped"
+                    )
                 boxes[b].final = jax.tree.map(lambda x, k=k: x[k], final).summary()
                 ev = boxes[b].events
                 mon = None
@@ -388,15 +391,3 @@ def run_episodes(
                 else:
                     batch_slots = put(batch_slots._replace(active=batch_slots.active.at[k].set(False)))
     return results  # type: ignore[return-value]
-
-
-def replay_episode(cfg: Config, truth: massdist.MassDistribution, key, actions) -> EpisodeTrace:
-    """The true world's trace of an on-device episode again, from its applied actions (T, 4) and its
-    episode key, stepped one by one with MJX (`MjxEnv.step`; a vmapped step may differ from it at float32
-    round-off, so a chaotic episode may drift from the recorded one: compare the outcomes)."""
-    env = mjx_backend.env_for(cfg)
-    key_reset, _ = jax.random.split(batch.as_key(key))
-    states = [env.reset(key_reset, truth)]
-    for a in np.asarray(actions, np.float64).reshape(-1, 4):
-        states.append(env.step(states[-1], a))
-    return EpisodeTrace.from_states(states, list(actions), cfg.gripper.control_dt, 0.0)

@@ -22,7 +22,7 @@ import numpy as np
 
 from boxjax import fileio, massdist, prior
 from boxjax.config import Config
-from boxjax.control import batch, monitor
+from boxjax.control import batch, device_loop, monitor
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import run_episode
 from boxjax.control.monitor import MonitorConfig
@@ -255,6 +255,7 @@ def evaluate(
     batched: bool | None = None,
     slots: int | None = None,
     faults: Faults = NO_FAULTS,
+    backend: str = "native",
 ) -> Evaluation:
     """Run one closed-loop episode on each of n_safe random label-safe boxes and n_hazardous hazardous
     boxes (paper §4.3). Every episode ends with an outcome: success, aborted (refused after exploring),
@@ -271,6 +272,8 @@ def evaluate(
         the controller allows it, `batch.supports`) or one at a time (`controller.run_episode`). The two
         agree in distribution, not bit for bit (see boxjax/batch.py); each episode's actions are kept,
         so `replay` re-simulates any of them exactly either way.
+      backend: "native" (MuJoCo on the host, the planner batched on the device) or "mjx" (the whole
+        closed loop on the device, `boxjax.control.device_loop`: no faults, the jnp planners).
 
     Under `jax.distributed` (`boxjax.experiments.distributed`) each process runs its share of the boxes
     and every process returns the whole evaluation.
@@ -283,7 +286,13 @@ def evaluate(
         raise ValueError(f"unknown estimator {estimator!r}; choose 'oracle' or 'learned'")
     if ctrl.belief == "ensemble" and estimator == "oracle":
         raise ValueError("belief='ensemble' plans over the learned H's members; the oracle has none")
+    if backend not in ("native", "mjx"):
+        raise ValueError(f"unknown backend {backend!r}; choose 'native' or 'mjx'")
     why_not = batch.supports(ctrl)
+    if backend == "mjx":
+        why_mjx = device_loop.supports(ctrl, faults)
+        if why_mjx is not None or batched is False:
+            raise ValueError(f"--backend mjx cannot run these episodes: {why_mjx or 'they run batched'}")
     if batched and why_not is not None:
         raise ValueError(f"cannot batch these episodes: {why_not}")
     if slots is not None and (slots < 1 or batched is False or why_not is not None):
@@ -314,7 +323,17 @@ def evaluate(
 
     dists = [boxes.dist(j) for j in mine]
     keys = [jax.random.wrap_key_data(boxes.keys[j]) for j in mine]
-    if batched and mine:  # (a process of several may have no box: more processes than boxes)
+    if backend == "mjx" and mine:
+        device_loop.run_episodes(
+            cfg,
+            dists,
+            keys,
+            estimator=est,
+            ctrl=ctrl,
+            slots=slots,
+            progress=lambda i, res: done(mine[i], res),
+        )
+    elif batched and mine:  # (a process of several may have no box: more processes than boxes)
         batch.run_episodes(
             cfg, dists, keys, estimator=est, ctrl=ctrl, slots=slots, faults=faults,
             progress=lambda i, res: done(mine[i], res),
@@ -336,6 +355,7 @@ def evaluate(
         **summarize(rows),
         **settings(estimator, ctrl, seed, family, faults),
         "batched": bool(batched),
+        "backend": backend,
         **({"processes": jax.process_count()} if jax.process_count() > 1 else {}),
         "wall_s": time.perf_counter() - t0,
     }
@@ -479,6 +499,15 @@ def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
     if actions is None:
         return run_episode(cfg, truth, key, estimator=est, ctrl=ctrl, faults=faults), summary
     return (
-        batch.replay_episode(cfg, truth, key, actions[index], estimator=est, ctrl=ctrl, faults=faults),
+        batch.replay_episode(
+            cfg,
+            truth,
+            key,
+            actions[index],
+            estimator=est,
+            ctrl=ctrl,
+            faults=faults,
+            backend=summary.get("backend", "native"),
+        ),  # fmt: skip
         summary,
     )
