@@ -1,5 +1,6 @@
 """Closed-loop episodes per second: batched (`boxjax.control.batch.run_episodes`) against one at a time
-(`controller.run_episode`), on the same random safe boxes and keys, measured in one run.
+(`controller.run_episode`), and the whole loop on the device (`boxjax.control.device_loop`, MJX, at the
+widths of `--mjx-slots`), on the same random safe boxes and keys, measured in one run.
 
 Both paths are compiled first on other boxes (a short warm-up episode each), so the timed part is
 episodes only; the compile times are reported apart. Also reported: each path's success count (the
@@ -11,7 +12,7 @@ are bit-identical to one-box calls on the same boxes and keys (`agreement`).
 Prints ONE JSON object (the last line).
 Run: python benchmarks/episodes.py [--boxes 32] [--slots 8] [--devices 1] [--seed 0] [--max-steps 600]
                                   [--skip-single]
-                                  [--widths 1 8 32]
+                                  [--widths 1 8 32] [--mjx-slots 16 64] [--skip-native]
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from _util import emit, machine  # noqa: E402
 
 from boxjax import control as controller
 from boxjax.config import DEFAULT  # noqa: E402
-from boxjax.control import batch
+from boxjax.control import batch, device_loop
 from boxjax.experiments import evaluation as experiments
 
 
@@ -104,6 +105,28 @@ def planner_widths(cfg, ctrl, boxes, widths, calls: int = 10) -> dict:
     return out
 
 
+def mjx_loop(cfg, ctrl, warm_dists, warm_keys, dists, keys, width: int, max_steps) -> dict:
+    """The on-device loop at `width` slots: compiled on the warm-up boxes (a 48-step cap: the cap is an
+    argument of its programs), then timed on the boxes."""
+    n = -(-width // len(warm_dists))
+    t0 = time.perf_counter()
+    device_loop.run_episodes(cfg, warm_dists * n, warm_keys * n, ctrl=ctrl, slots=width, max_steps=48)
+    warm = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = device_loop.run_episodes(cfg, dists, keys, ctrl=ctrl, slots=width, max_steps=max_steps)
+    wall = time.perf_counter() - t0
+    steps = sum(r.summary["steps"] for r in res)
+    return {
+        "slots": width,
+        "warmup_s": warm,
+        "wall_s": wall,
+        "episodes_per_s": len(dists) / wall,
+        "success": sum(r.summary["success"] for r in res),
+        "control_steps": steps,
+        "box_steps_per_s": steps / wall,
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--boxes", type=int, default=32)
@@ -121,6 +144,14 @@ def main() -> None:
         default=[1, 8, 32],
         help="planner-call widths timed alone (boxes per vmapped call); none: skip",
     )
+    ap.add_argument(
+        "--mjx-slots",
+        type=int,
+        nargs="*",
+        default=[],
+        help="the on-device loop (MJX) at these widths (boxes per program call); none: skip",
+    )
+    ap.add_argument("--skip-native", action="store_true", help="time the on-device loop only")
     args = ap.parse_args()
     if args.boxes < 1 or (args.slots is not None and args.slots < 1) or args.devices < 1:
         ap.error("--boxes, --slots and --devices must be >= 1")
@@ -142,8 +173,16 @@ def main() -> None:
         **machine(),
     }
 
-    # compile: one short episode per path on boxes outside the timed set
     wt, wk = _episodes(cfg, boxes, warm_idx)
+    dists, keys = _episodes(cfg, boxes, idx)
+    if args.mjx_slots:
+        out["mjx"] = [mjx_loop(cfg, ctrl, wt, wk, dists, keys, w, args.max_steps) for w in args.mjx_slots]
+    if args.skip_native:
+        out["load_avg_1m"] = os.getloadavg()[0]
+        emit(out)
+        return
+
+    # compile: one short episode per path on boxes outside the timed set
     t0 = time.perf_counter()
     batch.run_episodes(
         cfg,
@@ -159,7 +198,6 @@ def main() -> None:
         controller.run_episode(cfg, wt[0], wk[0], ctrl=ctrl, max_steps=48)
         out["single_warmup_s"] = time.perf_counter() - t0
 
-    dists, keys = _episodes(cfg, boxes, idx)
     t0 = time.perf_counter()
     res = batch.run_episodes(cfg, dists, keys, ctrl=ctrl, slots=args.slots, max_steps=args.max_steps)
     wall_b = time.perf_counter() - t0

@@ -715,7 +715,7 @@ def add_parsers(sub) -> None:
         v,
         "--animate-failures",
         action="store_true",
-        used_by=(needs("out"),),
+        used_by=(needs("out"), when("backend", "native", owner="evaluations on the native backend")),
         help="a top-view GIF of every failed episode in OUT/failures/ (re-simulated from its actions)",
     )
     option(v, "--plot", help="balance error over time (paper Fig. 3c) and outcomes over the centre of mass")

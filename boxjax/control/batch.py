@@ -64,7 +64,6 @@ from boxjax.planners.registry import make_planner
 from boxjax.sim.episode import EpisodeTrace
 from boxjax.sim.faults import NONE as NO_FAULTS
 from boxjax.sim.faults import Faults
-from boxjax.sim.mjx_backend import MjxBatch
 from boxjax.sim.native import NativeBatch
 
 # Boxes per planner call and device: wider calls cost little less per box (benchmarks/episodes.py) and
@@ -479,7 +478,6 @@ def replay_episode(
     estimator: Any = "oracle",
     ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008
     faults: Faults = NO_FAULTS,
-    backend: str = "native",
 ) -> EpisodeResult:
     """An episode again from the actions (T, 4) the gripper applied, with its episode key and faults: the
     physics re-simulated (the same states bit for bit: `NativeBatch` steps each world as `NativeEnv`
@@ -487,21 +485,13 @@ def replay_episode(
     the same sensor draws, the estimator and the hazard decision re-run on the exploration, the summary
     as the episode's own (without the monitor's record: its decisions are in the actions).
 
-    `backend` "mjx": an episode of the on-device loop (`device_loop`), its worlds stepped with MJX
-    (`MjxBatch`; the loop's vmapped step may differ from this one at float32 round-off, so a chaotic
-    episode may drift from the recorded one).
-
     Raises:
       ValueError: the episode ends before its actions do, or its exploration is not the one the
         controller's (guarded) exploration sends (another box, key, config or faults).
     """
     t0 = time.perf_counter()
     key_reset, _ = jax.random.split(as_key(key))
-    if backend not in ("native", "mjx"):
-        raise ValueError(f"unknown backend {backend!r}; choose 'native' or 'mjx'")
-    if backend == "mjx" and faults.any:
-        raise ValueError("faults run on the native backend only")
-    sim = (NativeBatch if backend == "native" else MjxBatch)(cfg, [truth], [key_reset])
+    sim = NativeBatch(cfg, [truth], [key_reset])
     world = World(cfg, faults, ctrl.pose_filter, as_key(key), truth)
     rec = _Record(sim, 0, world)
     actions = np.asarray(actions, np.float64).reshape(-1, 4)

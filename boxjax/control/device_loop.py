@@ -22,8 +22,9 @@ What it runs: the jnp planners with the physics prior on the oracle's or a learn
 with or without the monitor (not in shadow mode), in the world MJX simulates: the true pose every step, no
 latency, the controller's friction the simulator's (faults are the native backend's: `batch`). MJX's
 contact solver is not native MuJoCo's, and slip makes episodes chaotic, so episodes differ from the native
-backend's; their statistics are compared in docs/results/batched-episodes.md. Every episode's actions are
-kept; `batch.replay_episode(..., backend="mjx")` re-simulates one with MJX.
+backend's; their statistics are compared in docs/results/batched-episodes.md. Nor can an episode be
+replayed: an MJX world's step depends at float32 round-off on the program it runs in (vmapped, how wide,
+sharded), and slip turns that into millimetres within a few steps (benchmarks/mjx_sensitivity.py measures it).
 """
 
 from __future__ import annotations
@@ -85,15 +86,16 @@ class Slot(NamedTuple):
 
 
 @lru_cache(maxsize=4)
-def _programs(cfg: Config, ctrl: ControllerConfig, max_steps: int, block: int):
-    """(explore, turn, init_plan): the jitted programs of the phases for this controller."""
+def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
+    """(explore, turn, init_plan): the jitted programs of the phases for this controller (the step cap
+    is an argument of the programs, not compiled in)."""
     env = mjx_backend.env_for(cfg)
     mpc = make_planner(cfg, ctrl)
     guard = ctrl.explore_guard
     n_explore = explore.N_STEPS + explore.GUARD_STEPS + 1
     settings = ctrl.monitor
 
-    def explore_one(params, key_reset):
+    def explore_one(params, key_reset, max_steps):
         state = env.pure_init(params, key_reset)
 
         def body(carry, _):
@@ -121,7 +123,7 @@ def _programs(cfg: Config, ctrl: ControllerConfig, max_steps: int, block: int):
         (state, g, _), rec = jax.lax.scan(body, carry, None, length=n_explore)
         return state, g, rec, first
 
-    def turn_one(slot: Slot):
+    def turn_one(slot: Slot, max_steps):
         def body(slot: Slot, _):
             obs = planning.observation(slot.window, slot.state.belt_speed, slot.state.target_yaw)
             pair = jax.random.split(slot.key)
@@ -152,8 +154,8 @@ def _programs(cfg: Config, ctrl: ControllerConfig, max_steps: int, block: int):
 
         return jax.lax.scan(body, slot, None, length=block)
 
-    explore_b = jax.jit(jax.vmap(explore_one))
-    turn_b = jax.jit(jax.vmap(turn_one), donate_argnums=0)
+    explore_b = jax.jit(jax.vmap(explore_one, in_axes=(0, 0, None)))
+    turn_b = jax.jit(jax.vmap(turn_one, in_axes=(0, None)), donate_argnums=0)
     return explore_b, turn_b, jax.jit(mpc.init)
 
 
@@ -267,7 +269,8 @@ def run_episodes(
         raise ValueError(f"block must be >= 1 control step, got {block}")
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
-    explore_b, turn_b, init_plan = _programs(cfg, ctrl, max_steps, block)
+    explore_b, turn_b, init_plan = _programs(cfg, ctrl, block)
+    cap = jnp.asarray(max_steps, jnp.int32)
     env = mjx_backend.env_for(cfg)
     put, n_dev = batch.box_sharding()
     width = SLOTS_PER_DEVICE * n_dev if slots is None else slots
@@ -297,7 +300,7 @@ def run_episodes(
         idx = list(range(lo, min(lo + width, B))) + [lo] * max(0, lo + width - B)
         params = mjx_backend.stack([env.box_params(truths[b]) for b in idx])
         key_reset = jnp.stack([split[b][0] for b in idx])
-        states, g, rec, first = explore_b(put(params), put(key_reset))
+        states, g, rec, first = explore_b(put(params), put(key_reset), cap)
         rec, g_host, final, first = _host(rec), _host(g), _host(_summary_state(states)), _host(first)
         for k, b in enumerate(idx[: min(width, B - lo)]):
             boxes.append(_Box(first["s"][k], first["belt_speed"][k], first["balance"][k]))
@@ -358,7 +361,7 @@ def run_episodes(
             batch_slots = batch_slots._replace(active=jnp.asarray(active))
         batch_slots = put(batch_slots)
         while any(b is not None for b in slot_box):
-            batch_slots, rec = turn_b(batch_slots)
+            batch_slots, rec = turn_b(batch_slots, cap)
             batch_slots = put(batch_slots)  # XLA returns MJX's empty arrays replicated: keep one layout
             rec = _host(rec)
             active = np.asarray(batch_slots.active)

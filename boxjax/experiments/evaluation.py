@@ -479,12 +479,22 @@ def faults_from_settings(st: dict) -> Faults:
     return Faults.from_dict(st["faults"]) if st.get("faults") else NO_FAULTS
 
 
+# Why an evaluation of the on-device loop cannot be replayed (measured: benchmarks/mjx_sensitivity.py).
+NO_MJX_REPLAY = (
+    "its episodes cannot be re-simulated: an MJX world's step depends at float32 round-off on the program "
+    "it runs in (vmapped, how wide, sharded), and slip makes those differences millimetres within a few "
+    "steps (docs/design.md#slip-chaos); its rows and balance traces are in the files"
+)
+
+
 def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
     """Box `index` of a written evaluation again: its recorded actions re-simulated with its own episode
     key (the same states bit for bit, however the evaluation ran), the estimator and the decision
     re-run on the exploration. Files without recorded actions: the episode re-run closed loop with
     `run_episode`. Returns (controller.EpisodeResult, the evaluation's summary)."""
     boxes, summary = load_boxes(out_dir)
+    if summary.get("backend", "native") != "native":
+        raise ValueError(f"{out_dir} ran on {summary['backend']}: {NO_MJX_REPLAY}")
     if not 0 <= index < len(boxes):
         raise ValueError(
             f"--index {index} is outside the evaluation's {len(boxes)} boxes (0..{len(boxes) - 1})"

@@ -1,0 +1,71 @@
+"""The whole closed loop on the device (`boxjax.control.device_loop`, `evaluate --backend mjx`), on a CPU:
+every episode ends with an outcome, the exploration is the guarded fixed sequence, a refused box is not
+turned, the slots are refilled, the monitor's stops are stops, and what the loop cannot run (and an
+MJX evaluation's replay) is refused by name. (Its
+decisions are the host's: tests/test_pure_state_machines.py.)"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from boxjax import massdist
+from boxjax.config import DEFAULT as cfg
+from boxjax.control import ControllerConfig, device_loop
+from boxjax.estimator import explore
+from boxjax.experiments import evaluation as experiments
+from boxjax.experiments.evaluation import outcome
+from boxjax.planners.sampling import SamplingOptions
+from boxjax.sim.faults import Faults
+
+# a planner without gradient steps: it compiles in a fraction of the default's time (as tests/test_batch.py)
+CTRL = ControllerConfig(sampling=SamplingOptions(gradient_steps=0))
+NAMES = ("uniform", "D", "A")
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    dists = [massdist.named(n, cfg.box) for n in NAMES]
+    keys = [jax.random.PRNGKey(j) for j in range(len(NAMES))]
+    ended = []
+    res = device_loop.run_episodes(
+        cfg, dists, keys, ctrl=CTRL, slots=2, block=10, progress=lambda b, r: ended.append(b)
+    )
+    return dists, keys, res, ended
+
+
+def test_every_episode_ends_with_an_outcome_and_the_hazard_is_refused(episodes):
+    dists, _, res, ended = episodes
+    assert sorted(ended) == [0, 1, 2]
+    outcomes = [outcome(r.summary) for r in res]
+    assert outcomes[1] == "aborted" and "hazard" in res[1].summary["abort_reason"]
+    assert res[1].summary["steps"] == explore.N_STEPS  # refused after exploring: never turned
+    assert all(o in ("success", "aborted", "safe_stop", "unbalanced", "step_cap", "tipped") for o in outcomes)
+    assert outcomes[0] == "success"  # the uniform box turns on MJX too
+    for r in res:
+        assert len(r.trace.s) == len(r.trace.actions) + 1 == r.summary["steps"] + 1
+        assert r.summary["exploration_steps"] == explore.N_STEPS
+        np.testing.assert_allclose(
+            r.trace.actions[: explore.N_STEPS], explore.exploration_actions(cfg), atol=1e-6
+        )
+        assert not r.summary["unnoticed_crossing"]
+
+
+def test_an_mjx_evaluation_is_not_replayed(monkeypatch):
+    monkeypatch.setattr(experiments, "load_boxes", lambda out_dir: ([None], {"backend": "mjx"}))
+    with pytest.raises(ValueError, match="cannot be re-simulated"):
+        experiments.replay(cfg, "ev/", 0)
+
+
+def test_the_monitors_stops_send_stops(episodes):
+    for r in episodes[2]:
+        for t in r.summary.get("monitor_stop_steps", []):
+            assert np.all(r.trace.actions[t, :2] == 0.0)  # a stop commands the belts to rest
+
+
+def test_what_the_device_loop_cannot_run_is_refused_by_name():
+    assert "faults" in device_loop.supports(CTRL, Faults(obs_noise_mm=3.0))
+    assert "simulator" in device_loop.supports(ControllerConfig(planner="simulator"))
+    with pytest.raises(ValueError, match="block"):
+        device_loop.run_episodes(cfg, [massdist.named("A", cfg.box)], [jax.random.PRNGKey(0)], block=0)
