@@ -52,7 +52,16 @@ from boxjax.sim.episode import EpisodeTrace
 from boxjax.sim.faults import Faults
 
 BLOCK = 20  # control steps per program call (the host collects and re-fills slots between blocks)
-SLOTS_PER_DEVICE = 64  # boxes per device and call (MJX on a CPU: 4.4 k world steps/s at 64, 0.9 k at 1)
+# Boxes per device and program call. On a CPU, 64 (MJX: 4.4 k world steps/s at 64, 0.9 k at 1;
+# docs/results/simulation.md), and never more than mjx_backend.CPU_CHUNK (jaxlib's batched Cholesky hangs
+# from ~768 worlds). On an accelerator, 1024: a guess, not a measurement (no GPU was at hand).
+SLOTS_PER_DEVICE = {"cpu": 64}
+SLOTS_PER_ACCELERATOR = 1024
+
+
+def default_slots(n_devices: int) -> int:
+    """Boxes per program call by default on this machine's devices."""
+    return SLOTS_PER_DEVICE.get(jax.default_backend(), SLOTS_PER_ACCELERATOR) * n_devices
 
 
 def supports(ctrl: ControllerConfig, faults: Faults | None = None) -> str | None:
@@ -247,8 +256,8 @@ def run_episodes(
     blocks with benchmarks/episodes.py).
 
     Args:
-      slots: boxes per program call (default SLOTS_PER_DEVICE per local device, rounded up to a multiple
-        of the devices; at most the boxes given).
+      slots: boxes per program call (default `default_slots`, rounded up to a multiple of the devices;
+        at most the boxes given).
       block: control steps per call of the turn's program.
       progress: optional callable(box index, EpisodeResult) called as each episode ends.
     Raises:
@@ -273,8 +282,13 @@ def run_episodes(
     cap = jnp.asarray(max_steps, jnp.int32)
     env = mjx_backend.env_for(cfg)
     put, n_dev = batch.box_sharding()
-    width = SLOTS_PER_DEVICE * n_dev if slots is None else slots
+    width = default_slots(n_dev) if slots is None else slots
     width = -(-min(width, B) // n_dev) * n_dev  # a multiple of the devices: equal shards
+    if jax.default_backend() == "cpu" and width // n_dev > mjx_backend.CPU_CHUNK:
+        raise ValueError(
+            f"{width // n_dev} worlds per CPU device: MJX on a CPU hangs in jaxlib's batched Cholesky from "
+            f"~768 worlds; use at most {mjx_backend.CPU_CHUNK * n_dev} slots here"
+        )
     split = [jax.random.split(batch.as_key(k)) for k in keys]
     results: list[EpisodeResult | None] = [None] * B
     boxes: list[_Box] = []
