@@ -697,7 +697,8 @@ def add_parsers(sub) -> None:
         type=int,
         used_by=(batchable, no_file, without("one_at_a_time", "the episodes run one by one")),
         check=at_least(1),
-        help="boxes per batched planner call (default 8 per device; --backend mjx: 64 per CPU device, at most 256, and 1024 per accelerator)",
+        help="boxes per batched planner call (default 8 per device; --backend mjx: 64 per CPU device, at "
+        "most 256, and 1024 per accelerator)",
     )
     option(
         v,
