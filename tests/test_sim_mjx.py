@@ -23,6 +23,9 @@ T = 40  # control steps = 2 s
 ACTIONS = np.tile([0.15, -0.15, 0.0, 0.0], (T, 1))
 
 
+# slow: different boxes in one MJX batch, sharded, run in the default suite's on-device loop
+# (tests/test_device_loop.py), which paid for its place with these two
+@pytest.mark.slow
 def test_batch_of_different_boxes():
     """Each world simulates its own box: swapping the boxes in the batch swaps the trajectories."""
     a, u = massdist.named("A", CFG.box), massdist.named("uniform", CFG.box)
@@ -63,6 +66,7 @@ def test_mjx_agrees_with_native_while_box_rides_the_belts():
     assert n["s"][0, -1, 2] > 0.2  # the box really travelled with the belts
 
 
+@pytest.mark.slow
 def test_sharded_rollout_over_four_cpu_devices():
     """With 4 (forced host) devices the batch is split over all of them and gives the same result."""
     code = textwrap.dedent(

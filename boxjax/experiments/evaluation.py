@@ -509,15 +509,6 @@ def replay(cfg: Config, out_dir, index: int, *, estimator_fn: Any = None):
     if actions is None:
         return run_episode(cfg, truth, key, estimator=est, ctrl=ctrl, faults=faults), summary
     return (
-        batch.replay_episode(
-            cfg,
-            truth,
-            key,
-            actions[index],
-            estimator=est,
-            ctrl=ctrl,
-            faults=faults,
-            backend=summary.get("backend", "native"),
-        ),  # fmt: skip
+        batch.replay_episode(cfg, truth, key, actions[index], estimator=est, ctrl=ctrl, faults=faults),
         summary,
     )
