@@ -12,7 +12,7 @@ import pytest
 
 from boxjax import massdist
 from boxjax.config import DEFAULT as cfg
-from boxjax.control import ControllerConfig, device_loop
+from boxjax.control import ControllerConfig, batch, device_loop
 from boxjax.estimator import explore
 from boxjax.experiments import evaluation as experiments
 from boxjax.experiments.evaluation import outcome
@@ -69,3 +69,28 @@ def test_what_the_device_loop_cannot_run_is_refused_by_name():
     assert "simulator" in device_loop.supports(ControllerConfig(planner="simulator"))
     with pytest.raises(ValueError, match="block"):
         device_loop.run_episodes(cfg, [massdist.named("A", cfg.box)], [jax.random.PRNGKey(0)], block=0)
+
+
+@pytest.mark.slow
+def test_mjx_worlds_behind_the_native_batch_interface_pause_and_refuse_bad_actions():
+    from boxjax.sim.mjx_backend import MjxBatch
+
+    sim = MjxBatch(cfg, [massdist.named(n, cfg.box) for n in ("A", "uniform")], [jax.random.PRNGKey(0)] * 2)
+    s0 = sim.s.copy()
+    sim.step(np.tile([0.1, -0.1, 0.0, 0.0], (2, 1)), np.array([True, False]))
+    assert (
+        sim.t.tolist() == [1, 0] and np.array_equal(sim.s[1], s0[1]) and not np.array_equal(sim.s[0], s0[0])
+    )
+    bad = np.zeros((2, 4))
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match=r"worlds \[1\]"):
+        sim.step(bad)
+    assert sim.state(0).summary()["steps"] == 1
+    with pytest.raises(ValueError, match="faults"):
+        batch.run_episodes(
+            cfg,
+            [massdist.named("A", cfg.box)],
+            [jax.random.PRNGKey(0)],
+            faults=Faults(obs_noise_mm=3.0),
+            backend="mjx",
+        )

@@ -64,6 +64,7 @@ from boxjax.planners.registry import make_planner
 from boxjax.sim.episode import EpisodeTrace
 from boxjax.sim.faults import NONE as NO_FAULTS
 from boxjax.sim.faults import Faults
+from boxjax.sim.mjx_backend import MjxBatch
 from boxjax.sim.native import NativeBatch
 
 # Boxes per planner call and device: wider calls cost little less per box (benchmarks/episodes.py) and
@@ -243,6 +244,7 @@ def run_episodes(
     adapter: Any = None,
     order: str = "longest_first",
     faults: Faults = NO_FAULTS,
+    backend: str = "native",
 ) -> list[EpisodeResult]:
     """`controller.run_episode(cfg, truths[j], keys[j], estimator=..., ctrl=...)` for every box j, batched
     (see the module docstring). Returns one EpisodeResult per box, in order; `wall_s` of each is the
@@ -262,6 +264,8 @@ def run_episodes(
         belief, ties in the given order) or "given" (the order of `truths`).
       faults: how each box's simulated world differs from the controller's (`run_episode`'s), drawn from
         the box's own key; with `ctrl.monitor` enabled the runtime safety monitor checks every action.
+      backend: "native" (`NativeBatch`) or "mjx": this host loop on MJX worlds (`MjxBatch`, no faults),
+        to compare with the on-device loop (`control.device_loop`) on the same physics.
     Raises:
       ValueError: an unsupported controller (`supports`), no boxes, mismatched keys, slots < 1, an
         adapter with ctrl.adapt_every < 1, or an unknown order.
@@ -280,12 +284,16 @@ def run_episodes(
         raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
     if order not in ORDERS:
         raise ValueError(f"unknown order {order!r}; choose one of {ORDERS}")
+    if backend not in ("native", "mjx"):
+        raise ValueError(f"unknown backend {backend!r}; choose 'native' or 'mjx'")
+    if backend == "mjx" and faults.any:
+        raise ValueError("faults are simulated on the native backend only, not 'mjx'")
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
     split = [jax.random.split(as_key(k)) for k in keys]
     key_reset = [k[0] for k in split]
     key_plan = [k[1] for k in split]
-    sim = NativeBatch(cfg, truths, key_reset)
+    sim = (NativeBatch if backend == "native" else MjxBatch)(cfg, truths, key_reset)
     rec = [
         _Record(sim, b, World(cfg, faults, ctrl.pose_filter, as_key(keys[b]), truths[b])) for b in range(B)
     ]

@@ -127,6 +127,68 @@ class MjxEnv:
         return core.freeze_if_done(state, self.physics_step(state, action))
 
 
+class MjxBatch:
+    """B worlds on MJX with `native.NativeBatch`'s interface (numpy fields s, belt_speed, balance_error,
+    max_balance_error, target_yaw, t, clipped, reason, `done`; `step(actions, active)`; `state(b)`), so that
+    host loops written for native worlds (`batch.run_episodes(..., backend="mjx")`) step MJX worlds too:
+    the host loop on MJX physics, beside the on-device loop (`control.device_loop`) on the same physics.
+    Every world is computed at every step (vmapped); worlds not `active` in a step, or whose episode has
+    ended, keep their state."""
+
+    backend = "mjx"
+
+    def __init__(self, cfg: Config, dists, keys):
+        dists = _as_list(dists)
+        if len(keys) != len(dists):
+            raise ValueError(f"need one key per box, got {len(keys)} keys for {len(dists)} boxes")
+        env = env_for(cfg)
+        self.cfg, self.ids = cfg, env.ids
+        self.models = [None] * len(dists)  # the per-box fields travel in the state
+        params = stack([env.box_params(d) for d in dists])
+        self._state = jax.vmap(env.pure_init)(params, jnp.stack([jnp.asarray(k) for k in keys]))
+        self._step = _batch_step(env)
+        self._sync()
+
+    def _sync(self) -> None:
+        st = self._state
+        for name in ("s", "belt_speed", "balance_error", "max_balance_error", "target_yaw", "t", "clipped"):
+            setattr(self, name, np.asarray(getattr(st, name)))
+        self.reason = np.asarray(st.reason)
+
+    def __len__(self) -> int:
+        return len(self.models)
+
+    @property
+    def done(self) -> np.ndarray:
+        return np.asarray(self._state.done)
+
+    def step(self, actions, active=None) -> None:
+        a = np.asarray(actions, np.float64)
+        if a.shape != (len(self), 4):
+            raise ValueError(f"actions must have shape ({len(self)}, 4), got {a.shape}")
+        active = ~self.done if active is None else np.asarray(active, bool) & ~self.done
+        bad = np.flatnonzero(active & ~np.all(np.isfinite(a), axis=1))
+        if bad.size:
+            raise ValueError(f"non-finite actions for worlds {bad.tolist()}: {a[bad].tolist()}")
+        self._state = self._step(
+            self._state, jnp.asarray(np.where(active[:, None], a, 0.0), jnp.float32), active
+        )
+        self._sync()
+
+    def state(self, b: int) -> core.State:
+        """World b as a `core.State` (no physics or model: for its `summary()` and `done`)."""
+        return jax.tree.map(lambda x: np.asarray(x[b]), self._state._replace(physics=None, model=None))
+
+
+@lru_cache(maxsize=4)
+def _batch_step(env: MjxEnv):
+    def one(state, action, active):
+        new = env.pure_step(state, action)
+        return jax.tree.map(lambda a, b: jnp.where(active, a, b), new, state)
+
+    return jax.jit(jax.vmap(one))
+
+
 @lru_cache(maxsize=4)
 def env_for(cfg: Config) -> MjxEnv:
     """One MjxEnv per config, so that jitted functions keyed on the env compile once per config."""
