@@ -34,6 +34,7 @@ def test_rollout_sequence_feeds_predictions_back_step_by_step():
     on, starting from the velocity and friction the previous step ended with (carry_velocity, default),
     or re-derived from the window (carry_velocity=False: exactly `predict` step by step)."""
     acts = jnp.array([[0.12, -0.08, 0.0, 0.004], [0.1, -0.1, 0.0, 0.0], [0.0, 0.0, -0.01, 0.0]], jnp.float32)
+    explain, predict = jax.jit(prior.explain), jax.jit(prior.predict)  # one step at a time, compiled
     for carry in (True, False):
         model = prior.make_prior(
             massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box),
@@ -45,17 +46,15 @@ def test_rollout_sequence_feeds_predictions_back_step_by_step():
         seq = np.asarray(prior.rollout_sequence(model, WINDOW, jnp.zeros(2), acts))
         w, b, u, f = WINDOW, jnp.zeros(2), None, None
         for k, a in enumerate(acts):
-            s, info = prior.explain(model, w, b, a, u, f)
+            s, info = explain(model, w, b, a, u, f)
             if carry:
                 u, f = info["velocity"], info["friction"]
             else:
-                np.testing.assert_allclose(
-                    np.asarray(s), np.asarray(prior.predict(model, w, b, a)), atol=1e-7
-                )
+                np.testing.assert_allclose(np.asarray(s), np.asarray(predict(model, w, b, a)), atol=1e-7)
             np.testing.assert_allclose(seq[k], np.asarray(s), atol=1e-5)  # m, rad: float32 (scan vs eager)
             w, b = jnp.concatenate([w[1:], s[None]]), planning.next_belt_speed(model, b, a)
         np.testing.assert_allclose(
-            seq[0], np.asarray(prior.predict(model, WINDOW, jnp.zeros(2), acts[0])), atol=1e-6
+            seq[0], np.asarray(predict(model, WINDOW, jnp.zeros(2), acts[0])), atol=1e-6
         )
         held = prior.rollout(model, WINDOW, jnp.zeros(2), acts[0], 2, brake_steps=1)
         np.testing.assert_allclose(np.asarray(held[0]), seq[0], atol=1e-6)

@@ -333,8 +333,8 @@ def run_episodes(
     # 2. the belief and the decision, on the host; the boxes to turn, longest expected first
     queue, models = [], {}
     for b in range(B):
-        lost = bool(boxes[b].final["done"])
-        if lost:
+        if boxes[b].final["done"]:  # lost while exploring (even as the guard tripped): a failure
+            decided[b] = ({}, None, None)
             finish(b, True)
             continue
         if decided[b][2] is None:
@@ -403,8 +403,6 @@ def run_episodes(
                 finish(b, False, mon)
                 models.pop(b)
                 slot_box[k] = waiting.pop(0) if waiting else None
-                if slot_box[k] is not None:
+                if slot_box[k] is not None:  # (an ended slot is already inactive)
                     batch_slots = put(batch.set_slot(batch_slots, k, slot_of(slot_box[k])))
-                else:
-                    batch_slots = put(batch_slots._replace(active=batch_slots.active.at[k].set(False)))
     return results  # type: ignore[return-value]
