@@ -157,7 +157,9 @@ def test_support_deficit_hand_computed():
         # MPPI and CEM are options, not the default: slow (11 s each), to keep the suite under 10 min
         pytest.param("mppi", {"gradient_steps": 0}, marks=pytest.mark.slow),
         pytest.param("cem", {"iterations": 2, "gradient_steps": 0}, marks=pytest.mark.slow),
-        ("best", {"gradient_steps": 3, "n_knots": 3}),
+        # knots are an option too; gradient refinement's gain is tested by
+        # test_gradient_refinement_lowers_the_cost_of_a_poor_sequence in the default suite (24 s here)
+        pytest.param("best", {"gradient_steps": 3, "n_knots": 3}, marks=pytest.mark.slow),
     ],
 )
 def test_planner_updates_never_lose_the_nominal_and_are_deterministic(update, extra):

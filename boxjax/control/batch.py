@@ -64,7 +64,7 @@ from boxjax.planners.registry import make_planner
 from boxjax.sim.episode import EpisodeTrace
 from boxjax.sim.faults import NONE as NO_FAULTS
 from boxjax.sim.faults import Faults
-from boxjax.sim.mjx_backend import MjxBatch
+from boxjax.sim.mjx_backend import MjxBatch, stack
 from boxjax.sim.native import NativeBatch
 
 # Boxes per planner call and device: wider calls cost little less per box (benchmarks/episodes.py) and
@@ -146,10 +146,6 @@ def as_key(key):
     if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         return key
     return jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
-
-
-def stack(trees):
-    return jax.tree.map(lambda *x: jnp.stack(x), *trees)
 
 
 @functools.partial(jax.jit, donate_argnums=0)

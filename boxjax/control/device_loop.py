@@ -367,7 +367,7 @@ def run_episodes(
         waiting = list(queue)
         slot_box: list[int | None] = [waiting.pop(0) if waiting else None for _ in range(width)]
         first = slot_of(slot_box[0])
-        batch_slots = batch.stack([slot_of(b) if b is not None else first for b in slot_box])
+        batch_slots = mjx_backend.stack([slot_of(b) if b is not None else first for b in slot_box])
         empty = [k for k, b in enumerate(slot_box) if b is None]
         if empty:
             active = np.ones(width, bool)
