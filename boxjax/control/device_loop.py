@@ -262,7 +262,7 @@ def run_episodes(
       progress: optional callable(box index, EpisodeResult) called as each episode ends.
     Raises:
       ValueError: a controller the loop cannot run (`supports`), no boxes, mismatched keys, slots or
-        block < 1.
+        block < 1, more than mjx_backend.CPU_CHUNK slots per CPU device.
       RuntimeError: a planner produced a non-finite action (naming the box; the box was stopped there).
     """
     why_not = supports(ctrl)
