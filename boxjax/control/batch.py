@@ -199,15 +199,8 @@ class _Record:
         return controller._controller_data(self.seen, self.sent)
 
     def trace(self, cfg: Config, wall_s: float) -> EpisodeTrace:
-        n = len(self.s)
-        return EpisodeTrace(
-            time=np.arange(n) * cfg.gripper.control_dt,
-            s=np.stack(self.s),
-            belt_speed=np.stack(self.belt_speed),
-            actions=np.asarray(self.actions, np.float64).reshape(-1, 4),
-            balance_error=np.asarray(self.balance),
-            clipped=np.asarray(self.clipped, bool),
-            wall_s=wall_s,
+        return EpisodeTrace.from_lists(
+            cfg.gripper.control_dt, self.s, self.belt_speed, self.actions, self.balance, self.clipped, wall_s
         )
 
 

@@ -180,13 +180,7 @@ class _MonitorRecord:
         self.reason = monitor.BALANCE if stopped else None
 
     def record(self) -> dict:
-        return {
-            "monitor_stops": len(self.stops),
-            "monitor_stop_steps": [t for t, _ in self.stops],
-            "monitor_stop_reasons": [r for _, r in self.stops],
-            "monitor_resumes": len(self.resumes),
-            "monitor_recoveries": len(self.recoveries),
-        }
+        return monitor.record(self.stops, len(self.resumes), len(self.recoveries))
 
 
 class _Box:
@@ -217,14 +211,8 @@ class _Box:
         self.clipped.append(bool(rec["clipped"][i]))
 
     def trace(self, cfg: Config, wall_s: float) -> EpisodeTrace:
-        return EpisodeTrace(
-            time=np.arange(len(self.s)) * cfg.gripper.control_dt,
-            s=np.stack(self.s),
-            belt_speed=np.stack(self.belt_speed),
-            actions=np.asarray(self.actions, np.float64).reshape(-1, 4),
-            balance_error=np.asarray(self.balance),
-            clipped=np.asarray(self.clipped, bool),
-            wall_s=wall_s,
+        return EpisodeTrace.from_lists(
+            cfg.gripper.control_dt, self.s, self.belt_speed, self.actions, self.balance, self.clipped, wall_s
         )
 
 

@@ -401,14 +401,22 @@ class Monitor:
 
     def record(self) -> dict:
         """The monitor's part of an episode summary (plain data)."""
-        return {
-            "monitor_stops": len(self.stops),
-            "monitor_stop_steps": [t for t, _ in self.stops],
-            "monitor_stop_reasons": [r for _, r in self.stops],
-            "monitor_resumes": len(self.resumes),
-            "monitor_recoveries": len(self.recoveries),
-            **({"monitor_would_stop": self.would_stop} if self.m.shadow else {}),
-        }
+        return record(
+            self.stops, len(self.resumes), len(self.recoveries), self.would_stop if self.m.shadow else None
+        )
+
+
+def record(stops, resumes: int, recoveries: int, would_stop=None) -> dict:
+    """The monitor's part of an episode summary from its stops ((control step, reason) each), the counts
+    of its resumes and recoveries and, in shadow mode, the steps it would have stopped at."""
+    return {
+        "monitor_stops": len(stops),
+        "monitor_stop_steps": [t for t, _ in stops],
+        "monitor_stop_reasons": [r for _, r in stops],
+        "monitor_resumes": resumes,
+        "monitor_recoveries": recoveries,
+        **({"monitor_would_stop": would_stop} if would_stop is not None else {}),
+    }
 
 
 def _offset(s) -> float:

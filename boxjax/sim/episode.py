@@ -28,6 +28,20 @@ class EpisodeTrace(NamedTuple):
     wall_s: float
 
     @classmethod
+    def from_lists(cls, control_dt, s, belt_speed, actions, balance_error, clipped, wall_s) -> EpisodeTrace:
+        """A trace from a host loop's per-step lists: T+1 states, belt speeds and balance errors, T actions
+        and clipped flags."""
+        return cls(
+            time=np.arange(len(s)) * control_dt,
+            s=np.stack(s),
+            belt_speed=np.stack(belt_speed),
+            actions=np.asarray(actions, np.float64).reshape(-1, 4),
+            balance_error=np.asarray(balance_error),
+            clipped=np.asarray(clipped, bool),
+            wall_s=wall_s,
+        )
+
+    @classmethod
     def from_states(
         cls, states: list[State], actions: list, control_dt: float, wall_s: float
     ) -> EpisodeTrace:
