@@ -160,6 +160,9 @@ class GripperConfig:
         return round(self.control_dt / self.timestep)
 
 
+EXPLORATIONS = ("fixed", "designed")
+
+
 @dataclass(frozen=True)
 class TaskConfig:
     """The rotation task and its success / failure rules (paper §2.1, §4.2)."""
@@ -175,10 +178,15 @@ class TaskConfig:
     # Optional noise on the initial pose (the paper starts every episode from the same pose: 0 by default).
     init_xy_noise: float = 0.0  # m, box centre x and y each ~ U(-n, n)
     init_yaw_noise: float = 0.0  # rad, yaw ~ U(-n, n)
+    # The 45-step exploration every episode starts with (boxjax.estimator.explore): "fixed" (the paper's
+    # shape, the shipped sequence) or "designed" (chosen for information, boxjax.estimator.design).
+    exploration: str = "fixed"  # "fixed" or "designed"
 
     def __post_init__(self):
         if self.balance_limit <= 0 or self.yaw_tolerance <= 0 or self.max_steps < 1:
             raise ConfigError("balance_limit and yaw_tolerance must be positive and max_steps >= 1")
+        if self.exploration not in EXPLORATIONS:
+            raise ConfigError(f"exploration must be one of {EXPLORATIONS}, got {self.exploration!r}")
 
 
 @dataclass(frozen=True)

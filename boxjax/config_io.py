@@ -36,13 +36,15 @@ SECTIONS: dict[str, type] = {"box": BoxConfig, "gripper": GripperConfig, "task":
 # Tables a config file may hold beside the Config's: how the simulated world differs from the controller's
 # (`boxjax.sim.faults.Faults`, read by the CLI: `load_table(path, "faults")`).
 OTHER_SECTIONS = ("faults",)
-# The exploration data H learns from depends on the box, the whole gripper and the initial pose noise
-# (the dataset is gathered open loop, so the task's success and failure rules do not enter it).
+# The exploration data H learns from depends on the box, the whole gripper, the initial pose noise and the
+# exploration sequence (the dataset is gathered open loop, so the task's success and failure rules do not
+# enter it).
 ESTIMATOR_FIELDS = (
     *(f"box.{f.name}" for f in dataclasses.fields(BoxConfig)),
     *(f"gripper.{f.name}" for f in dataclasses.fields(GripperConfig)),
     "task.init_xy_noise",
     "task.init_yaw_noise",
+    "task.exploration",
 )
 
 
@@ -215,14 +217,18 @@ MISSING = object()  # `field_mismatches`: the stored dict has no such field
 
 def field_mismatches(stored: dict, expected: dict, fields) -> list[tuple[str, Any, Any]]:
     """(name, stored value or MISSING, expected value) for each dotted field name where two config
-    dicts differ (floats compared to 1e-9): how a model or calibration file is checked against a config."""
+    dicts differ (floats compared to 1e-9): how a model or calibration file is checked against a config.
+    A field the stored dict lacks was added to the Config after it was saved, so it was made with that
+    field's default: it matches an expected default value and nothing else."""
+    defaults = DEFAULT.to_dict()
     out = []
     for name in fields:
         want = _get(expected, name)
         try:
             have = _get(stored, name)
         except (KeyError, TypeError):
-            out.append((name, MISSING, want))
+            if not _same(_get(defaults, name), want):
+                out.append((name, MISSING, want))
             continue
         if not _same(have, want):
             out.append((name, have, want))
@@ -231,10 +237,12 @@ def field_mismatches(stored: dict, expected: dict, fields) -> list[tuple[str, An
 
 def differences(stored: dict, cfg: Config, fields) -> list[str]:
     """'name: model has X, config has Y' for each of `fields` (dotted) where `stored` (a Config's
-    `to_dict()`) and `cfg` differ; a field missing from `stored` counts as different."""
+    `to_dict()`) and `cfg` differ; a field missing from `stored` counts as its default
+    (`field_mismatches`)."""
 
     return [
-        f"{name}: not recorded in the model, config has {w!r}"
+        f"{name}: not recorded in the model (made with the default {_get(DEFAULT.to_dict(), name)!r}), "
+        f"config has {w!r}"
         if have is MISSING
         else f"{name}: model has {have!r}, config has {list(w) if isinstance(w, tuple) else w!r}"
         for name, have, w in field_mismatches(stored, cfg.to_dict(), fields)

@@ -120,6 +120,11 @@ def test_estimator_eval_on_mjx(capsys):
             "--planner does nothing with --replay",
         ),
         (["rotate", "--replay", "ev", "--index", "0", "--config", "c.toml"], "DIR/config.toml"),
+        (["rotate", "--replay", "ev", "--index", "0", "--exploration", "designed"], "DIR/config.toml"),
+        (
+            ["rotate", "--estimator", "learned", "--exploration", "designed"],
+            "train-estimator --exploration designed",
+        ),
         (["rotate", "--replay", "ev"], "--replay DIR needs --index K"),
         (["simulate", "--policy", "random", "--speed", "0.1"], "--speed is an option of --policy naive"),
         (["simulate", "--steps", "0"], "--steps must be >= 1, got 0"),

@@ -145,6 +145,21 @@ def config_option(p: argparse.ArgumentParser, *used_by: Condition) -> None:
     )
 
 
+def exploration_option(p: argparse.ArgumentParser, *used_by: Condition) -> None:
+    """--exploration fixed|designed: the 45-step exploration (`TaskConfig.exploration`; beats --config)."""
+    from boxjax.config import EXPLORATIONS
+
+    option(
+        p,
+        "--exploration",
+        choices=EXPLORATIONS,
+        used_by=used_by,
+        help="the exploration sequence: the fixed one (the paper's shape, the default) or the one designed "
+        "for information (boxjax.estimator.design); the estimator must be trained on it "
+        "(train-estimator --exploration designed)",
+    )
+
+
 def box_options(p: argparse.ArgumentParser, default: str | None, *used_by: Condition) -> None:
     """--distribution NAME or --box FILE: the box of one episode."""
     from boxjax.massdist import NAMES

@@ -14,6 +14,7 @@ from boxjax.cli.args import (
     at_least,
     box_options,
     config_option,
+    exploration_option,
     fault_options,
     needs,
     option,
@@ -27,8 +28,10 @@ CLI_SETTINGS = "cli.json"  # evaluate --out DIR: what the CLI adds to the evalua
 
 
 def load_config(args):
-    """The Config of --config (the defaults without it); also checks an --animate path up front, so a
-    bad one is refused before the episode runs."""
+    """The Config of --config (the defaults without it) with --exploration applied; also checks an
+    --animate path up front, so a bad one is refused before the episode runs."""
+    import dataclasses
+
     from boxjax.config import DEFAULT
 
     if getattr(args, "animate", None):
@@ -36,11 +39,14 @@ def load_config(args):
 
         check_path(args.animate)
 
-    if getattr(args, "config", None) is None:
-        return DEFAULT
-    from boxjax import config_io
+    cfg = DEFAULT
+    if getattr(args, "config", None) is not None:
+        from boxjax import config_io
 
-    return config_io.load(args.config)
+        cfg = config_io.load(args.config)
+    if getattr(args, "exploration", None) is not None:
+        cfg = cfg.replace(task=dataclasses.replace(cfg.task, exploration=args.exploration))
+    return cfg
 
 
 def the_box(args, cfg):
@@ -621,6 +627,7 @@ def add_parsers(sub) -> None:
         help="epochs over the episode's data per adaptation of W",
     )
     config_option(r, without("replay", "it uses the evaluation's own config (DIR/config.toml)"))
+    exploration_option(r, without("replay", "it uses the evaluation's own config (DIR/config.toml)"))
     output_options(r, "write yaw / balance / belts over the episode to this PNG")
     r.set_defaults(func=cmd_rotate)
 
@@ -629,6 +636,7 @@ def add_parsers(sub) -> None:
     option(d, "--weights", help="estimator checkpoint (default: the one shipped with boxjax)")
     option(d, "--seed", type=int, default=0, help="the episode's PRNG seed")
     config_option(d)
+    exploration_option(d)
     option(d, "--plot", default="boxjax_demo.png", help="figure path ('' for none)")
     option(d, "--animate", metavar="FILE.gif", help="write a top-view animation of the episode")
     d.add_argument("--json", action="store_true", help="print the summary as one JSON line")
@@ -722,5 +730,6 @@ def add_parsers(sub) -> None:
     option(v, "--plot", help="balance error over time (paper Fig. 3c) and outcomes over the centre of mass")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
     config_option(v)
+    exploration_option(v)
     v.add_argument("--json", action="store_true", help="print the summary as one JSON line")
     v.set_defaults(func=cmd_evaluate)

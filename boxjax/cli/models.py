@@ -4,12 +4,21 @@ The models are imported by the check that needs them (the CLI's start-up time: `
 
 from __future__ import annotations
 
+import dataclasses
+
 from boxjax.config import DEFAULT, Config, ConfigError
 from boxjax.config_io import ESTIMATOR_FIELDS, differences
 
 
-def _config_flag(config_path) -> str:
-    return f" --config {config_path}" if config_path else " --config FILE.toml"
+def _config_flag(config_path, cfg: Config) -> str:
+    """The options that make a model for `cfg`: its --config (a placeholder when the config came from
+    elsewhere) and a non-default --exploration."""
+    flag = f" --config {config_path}" if config_path else ""
+    if not config_path and cfg.replace(task=dataclasses.replace(cfg.task, exploration="fixed")) != DEFAULT:
+        flag = " --config FILE.toml"
+    if cfg.task.exploration != DEFAULT.task.exploration:
+        flag += f" --exploration {cfg.task.exploration}"
+    return flag
 
 
 def estimator_mismatch(cfg: Config, weights=None) -> list[str]:
@@ -42,7 +51,7 @@ def require_models(
     the learned H (`estimator`, the shipped one or `weights`), the shipped calibration (`calibration`,
     for the paper prior) or the black box W (`baseline`, the shipped one or `baseline_weights`). The
     message names the fields that differ and the command that makes a model for this config."""
-    flag = _config_flag(config_path)
+    flag = _config_flag(config_path, cfg)
     if estimator:
         diffs = estimator_mismatch(cfg, weights)
         if diffs:

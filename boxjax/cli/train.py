@@ -8,7 +8,7 @@ import sys
 import time
 
 from boxjax.cli import models as cli_models
-from boxjax.cli.args import at_least, config_option, option, when
+from boxjax.cli.args import at_least, config_option, exploration_option, option, when
 from boxjax.cli.episodes import load_config
 
 
@@ -246,6 +246,7 @@ def add_parsers(sub) -> None:
     )
     _simulation_options(t)
     config_option(t)
+    exploration_option(t)
     t.add_argument("--json", action="store_true")
     t.set_defaults(func=cmd_train_estimator)
 
@@ -259,6 +260,7 @@ def add_parsers(sub) -> None:
     m.add_argument("--out", required=True, help="the checkpoint to write (.npz)")
     _simulation_options(m)
     config_option(m)
+    exploration_option(m)
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=cmd_train_moments)
 
@@ -269,6 +271,7 @@ def add_parsers(sub) -> None:
     option(e, "--moments", help="moments checkpoint (train-moments; default: the one shipped with boxjax)")
     _simulation_options(e)
     config_option(e)
+    exploration_option(e)
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_estimator_eval)
 

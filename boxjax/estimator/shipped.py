@@ -36,7 +36,9 @@ def check_exploration(model: EstimatorParams, cfg: Config, path) -> None:
     current = explore.exploration_actions(cfg)
     if stored.shape != current.shape or not np.allclose(stored, current, atol=1e-7):
         raise CheckpointError(
-            f"{path}: trained on a different exploration sequence than boxjax.estimator.explore's; retrain it"
+            f"{path}: trained on a different exploration sequence than this config's "
+            f"(task.exploration = {cfg.task.exploration!r}); train one with `boxjax train-estimator "
+            f"--exploration {cfg.task.exploration}`"
         )
 
 
