@@ -1,21 +1,27 @@
 """Design the exploration for information (`boxjax.estimator.design`), then measure in the simulator what it
 reveals beside the shipped sequence.
 
-  python scripts/exploration_design.py search --out runs/design.json          # the prior's account (~10 min)
-  python scripts/exploration_design.py validate --design runs/design.json \
-      --boxes 8000 --out benchmarks/results_exploration_design.json              # the simulator's (~6 min)
+  # explore.DESIGNED (about 12 min on the 2-core CPU):
+  python scripts/exploration_design.py search --design-boxes 32 --sim-boxes 160 --screen 24 \
+      --population 48 --elites 6 --iterations 14 --std 0.2 --out runs/design/search_guard.json
+  # what it reveals in the simulator (about 6 min per sequence; --no-shipped skips the shipped one's row):
+  python scripts/exploration_design.py validate --design runs/design/search_guard.json --boxes 8000 \
+      --out runs/design/validate_guard.json
 
-`search`: the cross-entropy method over 15-vector sequences (the shipped shape) on --design-boxes boxes of the
-wide training mixture (`boxjax.training.wide`; the held-out scatter family is never used), maximising the
-prior's expected information gain about (com_x, com_y, com_z, log(I_zz / M)) under the constraint that the
-prior's predicted 95th percentile of the worst balance error is no larger than the shipped sequence's. It
-also scores the candidates of `scripts/exploration_candidates.py` on the same boxes (so the prior's ranking
-can be checked against the simulator's measurements of them).
+`search`: the cross-entropy method over 15-vector sequences (the shipped shape and rules) on --design-boxes
+boxes of the wide training mixture (`boxjax.training.wide`; the held-out scatter family is never used),
+maximising the prior's expected information gain about (com_x, com_y, com_z, log(I_zz / M)). Safety: with
+--sim-boxes N, N label-safe boxes of the mixture are simulated for the --screen most informative candidates
+of each iteration, and a candidate must keep the 95th percentile of their worst balance error and the
+number judged past the exploration guard no worse than the shipped sequence's; without, the prior's
+predicted 95th percentile (optimistic: docs/results/estimator-and-hazards.md#designed-exploration). It also
+scores the candidates of `scripts/exploration_candidates.py` on the same boxes, so the prior's ranking can
+be checked against the simulator's measurements of them.
 
-`validate`: for the shipped sequence and the designed one, the protocol of `scripts/exploration_candidates.py`
-(the same simulated boxes for both, a regressor of log mass, centre of mass and log I_zz trained on the
-explorations' features, its median errors on 1000 test boxes; the share of boxes pushed past the 4 cm limit
-while exploring), repeated over --net-seeds.
+`validate`: for the shipped sequence and each design, the protocol of `scripts/exploration_candidates.py`
+(the same simulated boxes for all, a regressor of log mass, centre of mass and log I_zz trained on the
+explorations' features per --net-seeds, its median errors on 1000 test boxes; the share of boxes pushed
+past the 4 cm limit while exploring). Results: benchmarks/results_exploration_design.json.
 """
 
 from __future__ import annotations
