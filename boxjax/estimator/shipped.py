@@ -83,7 +83,9 @@ def _load_moments(path: str, cfg: Config) -> MomentsModel:
         np.shape(stored) != current.shape or not np.allclose(stored, current, atol=1e-7)
     ):
         raise MomentsError(
-            f"{path}: trained on a different exploration sequence than this config's; retrain it"
+            f"{path}: trained on a different exploration sequence than this config's "
+            f"(task.exploration = {cfg.task.exploration!r}); train one with `boxjax train-moments "
+            f"--exploration {cfg.task.exploration}`"
         )
     # The shipped file predates the field: it was trained for the default box.
     size = meta.get("box_size", list(DEFAULT.box.size))
