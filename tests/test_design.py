@@ -116,6 +116,7 @@ def test_sequence_keeps_the_rules():
     np.testing.assert_allclose(design.sequence(design.free_of(explore.VECTORS)), explore.VECTORS, atol=2e-4)
 
 
+@pytest.mark.slow  # 12 s, mostly compiling the one-sequence evaluation
 def test_search_never_returns_worse_than_its_start(boxes, three):
     _, models, _ = boxes
     c0, _ = three
