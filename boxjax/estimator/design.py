@@ -186,16 +186,13 @@ def simulated_offsets(cfg: Config, dists, vectors) -> np.ndarray:
 
 
 def guard_judged(offsets, lead: int) -> np.ndarray:
-    """(..., T + 1) m, what the exploration guard (`explore.Guarded`, a sensor without noise) judges at each
-    step of the signed balance offsets (..., T + 1): the present error plus `lead` times the smaller of the
-    last two changes away from the midline."""
-    h = np.asarray(offsets)
-    side = np.where(h >= 0, 1.0, -1.0)
-    d1 = np.zeros_like(h)
-    d2 = np.zeros_like(h)
-    d1[..., 2:] = side[..., 2:] * (h[..., 2:] - h[..., 1:-1])
-    d2[..., 2:] = side[..., 2:] * (h[..., 1:-1] - h[..., :-2])
-    return np.abs(h) + lead * np.maximum(np.minimum(d1, d2), 0.0)
+    """(..., T + 1) m, what the exploration guard (a sensor without noise) judges at each step of the signed
+    balance offsets (..., T + 1): `explore.judged_balance` once three offsets are seen, the present error
+    before."""
+    h = np.asarray(offsets, np.float64)
+    windows = np.stack([h[..., :-2], h[..., 1:-1], h[..., 2:]], axis=-1)
+    judged = explore.judged_balance(windows, np.abs(h[..., 2:]), lead)
+    return np.concatenate([np.abs(h[..., :2]), judged], axis=-1)
 
 
 class Search(NamedTuple):

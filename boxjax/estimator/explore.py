@@ -266,6 +266,19 @@ def recentre_action(cfg: Config, s) -> np.ndarray:
     return np.array([0.0, 0.0, dp, dp])
 
 
+def judged_balance(h, b, lead: int, noise: float = 0.0) -> np.ndarray:
+    """m, the balance error the guard judges (numpy, elementwise over leading axes): the present error b plus
+    `lead` times the smaller of the last two changes away from the midline of the last three signed offsets
+    h (..., 3), newest last. A swing moves the box away at every step, while a pose's noise rarely does twice
+    running (the two changes share a frame, so their noises are anti-correlated; with 1 mm of pose noise
+    the mean change over two steps tripped the guard on 7 of 583 safe boxes, scripts/exploration_guard.py
+    --noise-mm 1); what two noisy frames' difference may show of itself (2 sqrt 2 noise) is discounted."""
+    h = np.asarray(h, np.float64)
+    side = np.where(h[..., 2] >= 0, 1.0, -1.0)
+    away = np.minimum(side * (h[..., 2] - h[..., 1]), side * (h[..., 1] - h[..., 0]))  # m per step
+    return b + lead * np.maximum(away - 2.0 * np.sqrt(2.0) * noise, 0.0)
+
+
 class Guarded:
     """The exploration of one box, step by step, with the guard (`guard`: a fraction of the task's balance
     limit; None: the paper's fixed sequence whatever happens): while the balance error stays within
@@ -323,14 +336,7 @@ class Guarded:
         self.history.append(float(geometry.balance_offset(s)))
         if self.lead == 0 or len(self.history) < 3:
             return b
-        h, side = self.history, (1.0 if self.history[-1] >= 0 else -1.0)
-        # The smaller of the last two changes away from the midline: a swing moves the box away at every
-        # step, while a pose's noise rarely does twice running (the two changes share a frame, so their
-        # noises are anti-correlated). With 1 mm of pose noise the mean change over two steps tripped the
-        # guard on 7 of 583 safe boxes (scripts/exploration_guard.py --noise-mm 1).
-        away = min(side * (h[-1] - h[-2]), side * (h[-2] - h[-3]))  # m per step
-        away -= 2.0 * np.sqrt(2.0) * self.noise  # what two noisy frames' difference may show of itself
-        return b + self.lead * max(away, 0.0)
+        return float(judged_balance(self.history[-3:], b, self.lead, self.noise))
 
     def next(self, s, balance_error) -> np.ndarray | None:
         b = abs(float(balance_error))
@@ -408,6 +414,7 @@ __all__ = [
     "describe_effect",
     "exploration_actions",
     "guard_explanation",
+    "judged_balance",
     "recentre_action",
     "run",
     "trajectory",
