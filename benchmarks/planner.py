@@ -13,8 +13,14 @@ Prints ONE JSON object:
   * the backend / device and the machine's load.
   * robust planning over three belt frictions (`--friction-set-only`): the default planner's step with
     the prior and with the Mixture, same run.
+  * the program's structure (`--structure-only`, on every kind of device present: the CPU and, where
+    there is one, the accelerator): the default planner and the one without gradient steps, with the
+    prior's step looped (`PriorParams(unroll=False)`) and unrolled (the default), for one box per call
+    and vmapped over 16 boxes: compile time, latency (the variants' calls interleaved, median), and the
+    operations and loop iterations one call runs, counted from the compiled HLO (`_hlo.dynamic_ops`;
+    on a GPU each operation is a kernel launch and each loop iteration a read-back of its condition).
 Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random] [--monitor-only]
-     [--friction-set-only]
+     [--friction-set-only] [--structure-only]
 """
 
 from __future__ import annotations
@@ -23,18 +29,22 @@ import argparse
 import json
 import os
 import platform
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import massdist, planning, prior
-from boxjax.config import DEFAULT
-from boxjax.control import monitor
-from boxjax.planners import paper as planner
-from boxjax.planners import sampling as sp
-from boxjax.prior import force_map as calibrate
+sys.path.insert(0, os.path.dirname(__file__))
+from _hlo import dynamic_ops  # noqa: E402
+
+from boxjax import massdist, planning, prior  # noqa: E402
+from boxjax.config import DEFAULT  # noqa: E402
+from boxjax.control import monitor  # noqa: E402
+from boxjax.planners import paper as planner  # noqa: E402
+from boxjax.planners import sampling as sp  # noqa: E402
+from boxjax.prior import force_map as calibrate  # noqa: E402
 
 # Sampling-planner settings timed (SamplingOptions overrides; "default" is the class default).
 SAMPLING_CONFIGS = {
@@ -79,6 +89,11 @@ def main() -> None:
         action="store_true",
         help="time robust planning over a friction set (ControllerConfig.friction_set) beside the default",
     )
+    ap.add_argument(
+        "--structure-only",
+        action="store_true",
+        help="the default planner's operations, loops, compile time and latency, prior looped / unrolled",
+    )
     args = ap.parse_args()
     calls = max(args.calls, 200)
     cfg = DEFAULT
@@ -107,6 +122,13 @@ def main() -> None:
         "rule": args.rule,
         "horizon": args.horizon,
     }
+    if args.structure_only:
+        out["structure"] = {
+            d.platform: _structure(cfg, masses, window, speed, target, keys, min(calls, 100), d)
+            for d in _device_kinds()
+        }
+        _finish(out)
+        return
     if args.friction_set_only:
         out["friction_set"] = _friction_set(cfg, model, window, speed, target, keys, min(calls, 200))
         _finish(out)
@@ -209,6 +231,59 @@ def _friction_set(cfg, model, window, speed, target, keys, calls: int) -> dict:
         }
     res["ratio_median"] = res["friction_set"]["median_ms"] / res["prior"]["median_ms"]
     return res
+
+
+def _device_kinds() -> list:
+    """The first device of each platform present: the CPU, and the accelerator where there is one."""
+    kinds = {jax.devices("cpu")[0].platform: jax.devices("cpu")[0]}
+    if jax.default_backend() != "cpu":
+        kinds[jax.devices()[0].platform] = jax.devices()[0]
+    return list(kinds.values())
+
+
+def _structure(cfg, masses, window, speed, target, keys, calls: int, device, boxes: int = 16) -> dict:
+    """The default planner and the one without gradient steps, prior looped and unrolled, one box per
+    call and vmapped over `boxes` boxes, on `device`: compile time, operations and loop iterations per
+    call (`_hlo.dynamic_ops`), and the latency with every variant's calls interleaved (median)."""
+    variants = {}
+    for planner_name, kw in (("default", {}), ("no_gradient", {"gradient_steps": 0})):
+        opts = sp.SamplingOptions(**kw)
+        for unroll in (False, True):
+            model = jax.device_put(prior.make_prior(masses, unroll=unroll), device)
+            nominal = sp.initial_nominal(cfg, opts, speed)
+            one = jax.jit(lambda k, m, n, o=opts: sp.plan(k, m, window, speed, target, n, cfg, o))
+            many = jax.jit(
+                jax.vmap(
+                    lambda k, m, n, o=opts: sp.plan(k, m, window, speed, target, n, cfg, o),
+                    in_axes=(0, None, None),
+                )
+            )
+            for width, fn, key_of in (
+                (1, one, lambda i: keys[i]),
+                (boxes, many, lambda i: keys[i : i + boxes]),
+            ):
+                name = f"{planner_name}_{'unrolled' if unroll else 'looped'}_x{width}"
+                with jax.default_device(device):
+                    args = (key_of(0), model, nominal)
+                    t0 = time.perf_counter()
+                    compiled = fn.lower(*args).compile()
+                    compile_s = time.perf_counter() - t0
+                    jax.block_until_ready(compiled(*args))
+                variants[name] = {"options": kw, "unroll": unroll, "boxes": width, "compile_s": compile_s}
+                variants[name].update(dynamic_ops(compiled.as_text()))
+                variants[name]["_call"] = (compiled, key_of, model, nominal)
+    times = {name: [] for name in variants}
+    for i in range(calls):
+        for name, v in variants.items():
+            compiled, key_of, model, nominal = v["_call"]
+            t0 = time.perf_counter()
+            jax.block_until_ready(compiled(key_of(i % (len(keys) - boxes)), model, nominal))
+            times[name].append(time.perf_counter() - t0)
+    for name, v in variants.items():
+        del v["_call"]
+        v["median_ms"] = float(1e3 * np.median(times[name]))
+        v["calls"] = calls
+    return {"device": f"{device.platform}:{getattr(device, 'device_kind', '')}", "variants": variants}
 
 
 def _finish(out: dict) -> None:

@@ -505,3 +505,30 @@ def test_prior_beats_constant_velocity_on_boxes_starting_to_spin():
         pos_cv, yaw_cv = errors(baseline)
         assert pos_prior < 0.5 * pos_cv, (pos_prior, pos_cv)
         assert yaw_prior < 0.5 * yaw_cv, (yaw_prior, yaw_cv)
+
+
+def test_unrolled_step_is_the_looped_step_without_its_loops():
+    """`PriorParams.unroll` (default) writes the step's substep and solver loops out as straight-line code:
+    the compiled step has no `while` loop left (on a GPU each iteration reads its condition back to the
+    host), and it predicts what the looped step predicts. Not bit for bit: XLA fuses the two programs
+    differently, and the solver's choice between its Newton and majorise-minimise candidates
+    (`jnp.where` on their objectives) may flip on a round-off tie, so a few micrometres is the tolerance
+    over a 10-step rollout of random actions."""
+    rng = np.random.default_rng(3)
+    window = jnp.asarray(
+        np.tile([-0.10, 0.10, 0.0, 0.0, 0.0], (3, 1)) + rng.normal(0, 1e-3, (3, 5)), jnp.float32
+    )
+    belt = jnp.array([0.05, -0.05], jnp.float32)
+    actions = jnp.asarray(rng.uniform(-1, 1, (10, 4)) * [0.2, 0.2, 0.01, 0.01], jnp.float32)
+    for name in ("A", "B", "C"):
+        masses = massdist.voxel_masses(massdist.named(name), DEFAULT.box)
+        looped, unrolled = (prior.make_prior(masses, unroll=u) for u in (False, True))
+        hlo = {}
+        for u, model in (("looped", looped), ("unrolled", unrolled)):
+            step = jax.jit(lambda w, b, a, m=model: prior.predict(m, w, b, a))
+            hlo[u] = step.lower(window, belt, actions[0]).compile().as_text()
+        assert " while(" in hlo["looped"] and " while(" not in hlo["unrolled"]
+        roll = [
+            jax.jit(lambda a, m=m: m.rollout_sequence(window, belt, a))(actions) for m in (looped, unrolled)
+        ]
+        np.testing.assert_allclose(np.asarray(roll[1]), np.asarray(roll[0]), atol=2e-5)
