@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 
-from boxjax.run_info import CACHE_ENV
+from boxjax.run_info import CACHE_ENV, use_compilation_cache
 
-# The CLI keeps JAX's compiled programs on disk (`run_info.use_compilation_cache`). Tests that call it
-# in-process must not write into the user's cache: the session keeps none unless the environment
-# names a folder (a test that wants one sets its own, as tests/test_reproduce.py's quick run does).
-os.environ.setdefault(CACHE_ENV, "off")
+# Compiled programs are kept on disk for the session, in a folder of its own shared by its processes
+# (pytest-xdist's workers inherit the environment of the process that starts them, which loads this
+# file first and removes the folder when it exits): many test modules compile the same programs (the
+# default planner takes ~15 s on 2 cores), and from the second module on they are read back. Nothing is
+# written to the user's cache (~/.cache/boxjax/jax). A folder named in the environment is used instead,
+# and BOXJAX_COMPILATION_CACHE=off runs the session without one.
+if CACHE_ENV not in os.environ:
+    _folder = tempfile.mkdtemp(prefix="boxjax-tests-jax-cache-")
+    os.environ[CACHE_ENV] = _folder
+    atexit.register(shutil.rmtree, _folder, True)
+use_compilation_cache()
