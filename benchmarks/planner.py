@@ -18,7 +18,8 @@ Prints ONE JSON object:
     prior's step looped (`PriorParams(unroll=False)`) and unrolled (the default), for one box per call
     and vmapped over 16 boxes: compile time, latency (the variants' calls interleaved, median), and the
     operations and loop iterations one call runs, counted from the compiled HLO (`_hlo.dynamic_ops`;
-    on a GPU each operation is a kernel launch and each loop iteration a read-back of its condition).
+    on a GPU each operation is a kernel launch and each loop iteration a read-back of its condition),
+    and for one box the functions the operations come from (`_hlo.by_source`).
 Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random] [--monitor-only]
      [--friction-set-only] [--structure-only]
 """
@@ -37,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _hlo import dynamic_ops  # noqa: E402
+from _hlo import by_source, dynamic_ops  # noqa: E402
 
 from boxjax import massdist, planning, prior  # noqa: E402
 from boxjax.config import DEFAULT  # noqa: E402
@@ -270,7 +271,10 @@ def _structure(cfg, masses, window, speed, target, keys, calls: int, device, box
                     compile_s = time.perf_counter() - t0
                     jax.block_until_ready(compiled(*args))
                 variants[name] = {"options": kw, "unroll": unroll, "boxes": width, "compile_s": compile_s}
-                variants[name].update(dynamic_ops(compiled.as_text()))
+                text = compiled.as_text()
+                variants[name].update(dynamic_ops(text))
+                if width == 1:  # where the operations come from: the 12 largest functions of boxjax
+                    variants[name]["sources"] = dict(list(by_source(text).items())[:12])
                 variants[name]["_call"] = (compiled, key_of, model, nominal)
     times = {name: [] for name in variants}
     for i in range(calls):

@@ -18,5 +18,9 @@ from boxjax.run_info import CACHE_ENV, use_compilation_cache
 if CACHE_ENV not in os.environ:
     _folder = tempfile.mkdtemp(prefix="boxjax-tests-jax-cache-")
     os.environ[CACHE_ENV] = _folder
+    # JAX reads these in every process it starts in: the README's snippets, the CLI run as a command and
+    # the distributed test's processes share the folder too.
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _folder
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
     atexit.register(shutil.rmtree, _folder, True)
 use_compilation_cache()

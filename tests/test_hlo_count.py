@@ -42,3 +42,28 @@ def test_an_unrolled_inner_loop_leaves_only_the_outer_one():
     unrolled = _nested(4, 3, unroll=True)
     assert unrolled["while_iterations"] == 4
     assert unrolled["static_ops"] > _nested(4, 3)["static_ops"]  # the body written out three times
+
+
+def test_operations_are_split_by_the_function_they_come_from():
+    from _hlo import by_source
+
+    def inner_work(d):
+        return jnp.sin(d) * 2 + jnp.cumsum(d)
+
+    def f(x):
+        def body(c, _):
+            return inner_work(c), None
+
+        y, _ = jax.lax.scan(body, x, None, length=5)
+        return jnp.cumsum(y)
+
+    text = jax.jit(f).lower(jnp.ones(3)).compile().as_text()
+    split = by_source(text, package="tests")
+    assert sum(split.values()) == dynamic_ops(text)["ops"]
+    # the loop body's operations run 5 times and come from inner_work (its innermost frame in the package)
+    assert (
+        split[
+            "test_hlo_count.py:test_operations_are_split_by_the_function_they_come_from.<locals>.inner_work"
+        ]
+        >= 5
+    )
