@@ -15,11 +15,12 @@ Prints ONE JSON object:
     the prior and with the Mixture, same run.
   * the program's structure (`--structure-only`, on every kind of device present: the CPU and, where
     there is one, the accelerator): the default planner and the one without gradient steps, with the
-    prior's step looped (`PriorParams(unroll=False)`) and unrolled (the default), for one box per call
-    and vmapped over 16 boxes: compile time, latency (the variants' calls interleaved, median), and the
-    operations and loop iterations one call runs, counted from the compiled HLO (`_hlo.dynamic_ops`;
-    on a GPU each operation is a kernel launch and each loop iteration a read-back of its condition),
-    and for one box the functions the operations come from (`_hlo.by_source`).
+    prior's step looped (`PriorParams(unroll=False)`) and unrolled (the default), for one call and 16
+    calls vmapped (one box, 16 keys: the width of a batched evaluation's call): compile time, latency
+    (the variants' calls interleaved, median), and the operations and loop iterations one call runs,
+    counted from the compiled HLO (`_hlo.dynamic_ops`; on a GPU each operation is a kernel launch and
+    each loop iteration a read-back of its condition), and for one call the functions the operations
+    come from (`_hlo.by_source`).
 Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random] [--monitor-only]
      [--friction-set-only] [--structure-only]
 """
@@ -243,9 +244,10 @@ def _device_kinds() -> list:
 
 
 def _structure(cfg, masses, window, speed, target, keys, calls: int, device, boxes: int = 16) -> dict:
-    """The default planner and the one without gradient steps, prior looped and unrolled, one box per
-    call and vmapped over `boxes` boxes, on `device`: compile time, operations and loop iterations per
-    call (`_hlo.dynamic_ops`), and the latency with every variant's calls interleaved (median)."""
+    """The default planner and the one without gradient steps, prior looped and unrolled, one call and
+    `boxes` calls vmapped (one box, as many keys), on `device`: compile time, operations and loop
+    iterations per call (`_hlo.dynamic_ops`), and the latency with every variant's calls interleaved
+    (median)."""
     variants = {}
     for planner_name, kw in (("default", {}), ("no_gradient", {"gradient_steps": 0})):
         opts = sp.SamplingOptions(**kw)
