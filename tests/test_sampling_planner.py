@@ -101,25 +101,31 @@ def test_cost_tip_barrier_is_the_stability_margin_shortfall():
 
 
 def test_plans_from_rest_turn_the_box_the_right_way_and_respect_limits():
-    """From rest, the plans towards yaw + pi/2 run belt 1 (left, y < 0) faster forwards (+x) than belt 2
-    on average over the plan:
-    that turns the box counter-clockwise (paper Fig. 1), and the predicted yaw grows. Every action is
-    within the limits. (Default options: the planner the controller uses.)"""
+    """From rest, the plans towards yaw + pi/2 turn the box counter-clockwise (paper Fig. 1): after six
+    receding-horizon iterations the predicted yaw grows for every key, and on average over the keys the
+    plan runs belt 1 (left, y < 0) faster forwards (+x) than belt 2. One plan alone may lean on the
+    carriages instead (keys 0-11, 2026-12-06: belt 1 - belt 2 from -0.04 to 0.11 m/s, mean 0.046; predicted
+    yaw 0.02-0.10 rad): a round-off change in the gradient flipped key 0's. Every action is within the
+    limits. (Default options: the planner the controller uses.)"""
     o = sp.SamplingOptions()
     plan = sp.make_sampling_planner(CFG, o)
     model = _model()
-    nominal = sp.initial_nominal(CFG, o)
-    key = jax.random.PRNGKey(0)
-    for _ in range(6):  # receding-horizon iterations on the same state
-        key, k = jax.random.split(key)
-        a, info = plan(k, model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
-        nominal = sp.shift_nominal(info.nominal)
-    a, states, plan_seq = np.asarray(a), np.asarray(info.states), np.asarray(info.nominal)
-    assert np.mean(plan_seq[:, 0] - plan_seq[:, 1]) > 0.02, plan_seq  # m/s, over the planned 0.5 s
-    assert states[-1, geometry.YAW] > 0.01, states[-1]  # rad, turning the right way
-    assert np.all(np.abs(a[:2]) <= o.speed_cap + 1e-7) and np.all(np.abs(a[2:]) <= G.max_position_step + 1e-7)
-    assert float(info.yaw_error) < 0  # still short of the target after 0.5 s from rest
-    assert info.states.shape == (o.horizon, 5) and info.cost.shape == (o.n_samples,)
+    differences = []
+    for seed in range(8):
+        nominal = sp.initial_nominal(CFG, o)
+        key = jax.random.PRNGKey(seed)
+        for _ in range(6):  # receding-horizon iterations on the same state
+            key, k = jax.random.split(key)
+            a, info = plan(k, model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
+            nominal = sp.shift_nominal(info.nominal)
+        a, states, plan_seq = np.asarray(a), np.asarray(info.states), np.asarray(info.nominal)
+        differences.append(np.mean(plan_seq[:, 0] - plan_seq[:, 1]))  # m/s, over the planned 0.5 s
+        assert states[-1, geometry.YAW] > 0.01, (seed, states[-1])  # rad, turning the right way
+        assert np.all(np.abs(a[:2]) <= o.speed_cap + 1e-7)
+        assert np.all(np.abs(a[2:]) <= G.max_position_step + 1e-7)
+        assert float(info.yaw_error) < 0  # still short of the target after 0.5 s from rest
+        assert info.states.shape == (o.horizon, 5) and info.cost.shape == (o.n_samples,)
+    assert np.mean(differences) > 0.02, differences
 
 
 def test_plan_keeps_the_best_and_is_deterministic_per_key():
