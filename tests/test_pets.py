@@ -336,6 +336,7 @@ def test_cli_train_baseline_model_pets_on_a_dataset(tmp_path, capsys, monkeypatc
         (["--model", "pets", "--episodes", "3"], "--episodes does nothing with --model pets --data"),
         (["--model", "pets", "--epochs", "0"], "--epochs must be >= 1"),
         (["--model", "pets", "--members", "0"], "--members must be >= 1"),
+        (["--backend", "mjx"], "--backend does nothing with --data"),  # nothing is simulated
     ],
 )
 def test_cli_train_baseline_refuses_an_option_the_model_does_not_use(tmp_path, capsys, extra, named):
@@ -373,3 +374,6 @@ def test_cli_train_baseline_model_blackbox_passes_epochs_to_w(tmp_path, monkeypa
     assert cli.main(argv) == 0
     assert seen["config"] == baseline.BaselineConfig(epochs=3) and seen["data"] == "d.npz"
     assert seen["n_episodes"] == 200 and '"model": "blackbox"' in capsys.readouterr().out
+    assert seen["backend"] == "native"
+    argv = ["train-baseline", "--backend", "mjx", "--out", str(tmp_path), "--json"]
+    assert cli.main(argv) == 0 and seen["backend"] == "mjx" and seen["data"] is None

@@ -156,6 +156,7 @@ def cmd_train_baseline(args) -> dict:
         "out": args.out,
         "progress": not args.json,
         "data": args.data,
+        "backend": args.backend,
     }
     if args.model == "pets":
         from boxjax.blackbox import pets
@@ -320,6 +321,16 @@ def add_parsers(sub) -> None:
         help="directory for baseline.npz, dataset.npz, report.json (PETS: pets.npz, pets_report.json)",
     )
     b.add_argument("--data", help="train on the dataset.npz of an earlier run instead of collecting")
+    option(
+        b,
+        "--backend",
+        choices=("native", "mjx"),
+        default="native",
+        used_by=(
+            lambda a: "does nothing with --data: the episodes are read, not simulated" if a.data else None,
+        ),
+        help="collect the episodes one by one with native MuJoCo, or in batches on the device with MJX",
+    )
     b.add_argument("--force", action="store_true", help="overwrite OUT/baseline.npz (PETS: OUT/pets.npz)")
     config_option(b)
     b.add_argument("--json", action="store_true", help="print the report as one JSON line (no progress bars)")

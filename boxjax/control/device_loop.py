@@ -29,6 +29,7 @@ sharded), and slip turns that into millimetres within a few steps (benchmarks/mj
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from functools import lru_cache
 from typing import Any, NamedTuple
@@ -97,14 +98,15 @@ class Slot(NamedTuple):
 @lru_cache(maxsize=4)
 def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
     """(explore, turn, init_plan): the jitted programs of the phases for this controller (the step cap
-    is an argument of the programs, not compiled in)."""
+    and whether the box explores are arguments of the programs, not compiled in: call it with
+    `explore=True`: the controllers with and without the exploration share them)."""
     env = mjx_backend.env_for(cfg)
     mpc = make_planner(cfg, ctrl)
     guard = ctrl.explore_guard
     n_explore = explore.N_STEPS + explore.GUARD_STEPS + 1
     settings = ctrl.monitor
 
-    def explore_one(params, key_reset, max_steps):
+    def explore_one(params, key_reset, max_steps, exploring):
         state = env.pure_init(params, key_reset)
 
         def body(carry, _):
@@ -127,7 +129,7 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
             }
             return (state, g, live), rec
 
-        carry = (state, guard_pure.init(), jnp.asarray(ctrl.explore))
+        carry = (state, guard_pure.init(), exploring)
         first = {"s": state.s, "belt_speed": state.belt_speed, "balance": state.balance_error}
         (state, g, _), rec = jax.lax.scan(body, carry, None, length=n_explore)
         return state, g, rec, first
@@ -163,7 +165,7 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
 
         return jax.lax.scan(body, slot, None, length=block)
 
-    explore_b = jax.jit(jax.vmap(explore_one, in_axes=(0, 0, None)))
+    explore_b = jax.jit(jax.vmap(explore_one, in_axes=(0, 0, None, None)))
     turn_b = jax.jit(jax.vmap(turn_one, in_axes=(0, None)), donate_argnums=0)
     return explore_b, turn_b, jax.jit(mpc.init)
 
@@ -266,7 +268,7 @@ def run_episodes(
         raise ValueError(f"block must be >= 1 control step, got {block}")
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
     t_start = time.perf_counter()
-    explore_b, turn_b, init_plan = _programs(cfg, ctrl, block)
+    explore_b, turn_b, init_plan = _programs(cfg, dataclasses.replace(ctrl, explore=True), block)
     cap = jnp.asarray(max_steps, jnp.int32)
     env = mjx_backend.env_for(cfg)
     put, n_dev = batch.box_sharding()
@@ -302,7 +304,7 @@ def run_episodes(
         idx = list(range(lo, min(lo + width, B))) + [lo] * max(0, lo + width - B)
         params = mjx_backend.stack([env.box_params(truths[b]) for b in idx])
         key_reset = jnp.stack([split[b][0] for b in idx])
-        states, g, rec, first = explore_b(put(params), put(key_reset), cap)
+        states, g, rec, first = explore_b(put(params), put(key_reset), cap, jnp.asarray(ctrl.explore))
         rec, g_host, final, first = _host(rec), _host(g), _host(_summary_state(states)), _host(first)
         for k, b in enumerate(idx[: min(width, B - lo)]):
             boxes.append(_Box(first["s"][k], first["belt_speed"][k], first["balance"][k]))

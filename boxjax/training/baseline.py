@@ -36,8 +36,11 @@ from boxjax.blackbox import baseline
 from boxjax.config import DEFAULT, Config
 from boxjax.fileio import atomic_path, read_npz
 from boxjax.planners.sampling import SamplingOptions, clip_actions
+from boxjax.training import baseline_device
+from boxjax.training import baseline_rules as rules
 
-KINDS = ("prior", "prior", "prior-noisy", "prior-noisy", "random")
+KINDS = rules.KINDS
+
 _DROP = ("off_belts", "tipped", "invalid_action")
 
 
@@ -47,7 +50,19 @@ def _tqdm(total, desc, progress):
     return tqdm(total=total, desc=desc, disable=not progress, leave=False)
 
 
-def _noisy_prior_episode(cfg: Config, truth, key, rng: np.random.Generator) -> tuple[dict, str | None]:
+def perturb(cfg: Config, rng: np.random.Generator, planned, scales, cap: float) -> np.ndarray:
+    """The prior-noisy kind's action (module docstring; `baseline_device.noisy_action` on the device): the
+    planned action plus gaussian noise of std `scales` (4,), or with probability `rules.P_RANDOM_NOISY` a
+    uniformly random action within (cap, cap, max step, max step); clipped to the planner's limits."""
+    hi = np.array([cap, cap, cfg.gripper.max_position_step, cfg.gripper.max_position_step])
+    if rng.random() < rules.P_RANDOM_NOISY:
+        a = rng.uniform(-hi, hi)
+    else:
+        a = planned + rng.normal(0, 1, 4) * scales
+    return np.asarray(clip_actions(a, cfg, cap), np.float64)
+
+
+def _noisy_prior_episode(cfg: Config, truth, key, rng: np.random.Generator, max_steps: int) -> tuple:
 
     ctrl = controller.ControllerConfig()
     mpc = controller.make_planner(cfg, ctrl)
@@ -57,9 +72,9 @@ def _noisy_prior_episode(cfg: Config, truth, key, rng: np.random.Generator) -> t
     key_reset, key_plan = jax.random.split(key)
     state = env.reset(key_reset, truth)
     rows, actions = [state], []
-    sig_v, sig_p = rng.uniform(0.01, 0.04), rng.uniform(0.001, 0.004)
+    sig_v, sig_p = rng.uniform(*rules.NOISE_SPEED), rng.uniform(*rules.NOISE_POSITION)
+    scales = np.array([sig_v, sig_v, sig_p, sig_p])
     cap = opts.speed_cap or cfg.gripper.belt_speed_limit
-    hi = np.array([cap, cap, cfg.gripper.max_position_step, cfg.gripper.max_position_step])
 
     def obs():
         w = np.stack([np.asarray(r.s) for r in rows[-planning.MIN_WINDOW :]])
@@ -67,54 +82,57 @@ def _noisy_prior_episode(cfg: Config, truth, key, rng: np.random.Generator) -> t
         return planning.observation(w, np.asarray(state.belt_speed), state.target_yaw)
 
     plan_state = mpc.init(obs())
-    while not bool(state.done) and len(actions) < cfg.task.max_steps:
+    while not bool(state.done) and len(actions) < max_steps:
         key_plan, k = jax.random.split(key_plan)
         a, plan_state, _ = mpc.optimize(k, model, obs(), plan_state)
-        a = np.asarray(a, np.float64)
-        if rng.random() < 0.1:
-            a = rng.uniform(-hi, hi)
-        else:
-            a = a + rng.normal(0, 1, 4) * np.array([sig_v, sig_v, sig_p, sig_p])
-        a = np.asarray(clip_actions(a, cfg, cap), np.float64)
+        a = perturb(cfg, rng, np.asarray(a, np.float64), scales, cap)
         state = env.step(state, a)
         rows.append(state)
         actions.append(a)
     return _arrays(rows, actions), state.summary()["failed_reason"]
 
 
-def _random_episode(cfg: Config, truth, key, rng: np.random.Generator) -> tuple[dict, str | None]:
+def random_drive(cfg: Config, rng: np.random.Generator, target, left: int, s, b) -> tuple:
+    """One step of the random drive (module docstring; the rule `baseline_device.random_action` follows on
+    the device): (action (4,), target (2,), steps left) from the drive's target and steps left, the planar
+    state `s` and the belt speeds `b`."""
+    g = cfg.gripper
+    dvmax = g.belt_accel_limit * g.control_dt
+    vmax = 0.8 * g.belt_speed_limit
+    hi = np.array([rules.RANDOM_SPEED, rules.RANDOM_SPEED, g.max_position_step, g.max_position_step])
+    if left <= 0 or (abs(s[geometry.X]) > rules.X_TURN_BACK and target[0] * s[geometry.X] > 0):
+        mode = rng.choice(list(rules.MODES), p=list(rules.MODE_P))
+        v = rng.uniform(rules.SPEED_MIN, vmax)
+        if mode == "turn":
+            target = np.array([v, -v]) * rng.choice([-1, 1]) + rng.normal(0, rules.TURN_SPREAD, 2)
+        elif mode == "translate":
+            sign = -np.sign(s[geometry.X]) if abs(s[geometry.X]) > rules.X_CENTRE else rng.choice([-1, 1])
+            target = np.full(2, sign * min(v, rules.TRANSLATE_CAP))
+        elif mode == "stop":
+            target = np.zeros(2)
+        else:
+            target = rng.uniform(-vmax, vmax, 2)
+        left = int(rng.integers(*rules.HOLD))
+    left -= 1
+    a = np.concatenate([b + np.clip(target - b, -dvmax, dvmax), np.zeros(2)])
+    bal = s[geometry.Y] - 0.5 * (s[geometry.P1] + s[geometry.P2])
+    if abs(bal) > rules.BALANCE_CORRECT:
+        a[2 + int(rng.integers(2))] = np.sign(bal) * rng.uniform(rules.STEP_MIN, g.max_position_step)
+    if rng.random() < rules.P_RANDOM_DRIVE:
+        a = rng.uniform(-hi, hi)
+    return a, target, left
+
+
+def _random_episode(cfg: Config, truth, key, rng: np.random.Generator, max_steps: int) -> tuple:
 
     cfg_free = cfg.replace(task=dataclasses.replace(cfg.task, target_yaw_delta=1e4))
     env = controller.env_for(cfg_free, "native")
-    g = cfg.gripper
     state = env.reset(key, truth)
     rows, actions = [state], []
     target, left = np.zeros(2), 0
-    dvmax = g.belt_accel_limit * g.control_dt
-    vmax = 0.8 * g.belt_speed_limit
-    hi = np.array([0.12, 0.12, g.max_position_step, g.max_position_step])
-    while not bool(state.done) and len(actions) < cfg.task.max_steps:
+    while not bool(state.done) and len(actions) < max_steps:
         s, b = np.asarray(state.s, np.float64), np.asarray(state.belt_speed, np.float64)
-        if left <= 0 or (abs(s[geometry.X]) > 0.12 and target[0] * s[geometry.X] > 0):
-            mode = rng.choice(["turn", "translate", "stop", "any"], p=[0.45, 0.2, 0.1, 0.25])
-            v = rng.uniform(0.03, vmax)
-            if mode == "turn":
-                target = np.array([v, -v]) * rng.choice([-1, 1]) + rng.normal(0, 0.01, 2)
-            elif mode == "translate":
-                sign = -np.sign(s[geometry.X]) if abs(s[geometry.X]) > 0.05 else rng.choice([-1, 1])
-                target = np.full(2, sign * min(v, 0.12))
-            elif mode == "stop":
-                target = np.zeros(2)
-            else:
-                target = rng.uniform(-vmax, vmax, 2)
-            left = int(rng.integers(10, 31))
-        left -= 1
-        a = np.concatenate([b + np.clip(target - b, -dvmax, dvmax), np.zeros(2)])
-        bal = s[geometry.Y] - 0.5 * (s[geometry.P1] + s[geometry.P2])
-        if abs(bal) > 0.015:
-            a[2 + int(rng.integers(2))] = np.sign(bal) * rng.uniform(0.002, g.max_position_step)
-        if rng.random() < 0.25:
-            a = rng.uniform(-hi, hi)
+        a, target, left = random_drive(cfg, rng, target, left, s, b)
         state = env.step(state, a)
         rows.append(state)
         actions.append(a)
@@ -129,28 +147,48 @@ def _arrays(rows, actions) -> dict:
     }
 
 
-def collect(cfg: Config, truth, n_episodes: int, seed: int = 0, progress: bool = True) -> list[dict]:
-    """`n_episodes` episodes on box `truth` (module docstring). Each: dict with s, belt_speed, actions,
-    kind, outcome ("success" or the failure reason), explore (bool)."""
+def collect(
+    cfg: Config,
+    truth,
+    n_episodes: int,
+    seed: int = 0,
+    progress: bool = True,
+    backend: str = "native",
+    max_steps: int | None = None,
+) -> list[dict]:
+    """`n_episodes` episodes on box `truth` (module docstring), simulated with native MuJoCo one at a time
+    (`backend="native"`) or on MJX in batches on the device (`"mjx"`, `training.baseline_device`). Each:
+    dict with s, belt_speed, actions, kind, outcome ("success" or the failure reason), explore (bool).
+    `max_steps`: the step cap (default the task's).
 
-    rng = np.random.default_rng(seed)
+    Raises:
+      ValueError: an unknown backend.
+    """
+    if backend not in ("native", "mjx"):
+        raise ValueError(f"unknown backend {backend!r}; choose 'native' or 'mjx'")
     keys = jax.random.split(jax.random.PRNGKey(seed), n_episodes)
+    bar = _tqdm(n_episodes, f"W data (episodes, {backend})", progress)
+    if backend == "mjx":
+        out = baseline_device.collect(cfg, truth, keys, bar.update, max_steps)
+        bar.close()
+        return out
+    rng = np.random.default_rng(seed)
+    cap = cfg.task.max_steps if max_steps is None else max_steps
     out = []
-    bar = _tqdm(n_episodes, "W data (episodes)", progress)
     for i in range(n_episodes):
         kind = KINDS[i % len(KINDS)]
         explore = False
         if kind == "prior":
             explore = i % 2 == 0
             res = controller.run_episode(
-                cfg, truth, keys[i], ctrl=controller.ControllerConfig(explore=explore)
+                cfg, truth, keys[i], ctrl=controller.ControllerConfig(explore=explore), max_steps=cap
             )
             data = {"s": res.trace.s, "belt_speed": res.trace.belt_speed, "actions": res.trace.actions}
             why = None if res.summary["success"] else res.summary["failed_reason"]
         elif kind == "prior-noisy":
-            data, why = _noisy_prior_episode(cfg, truth, keys[i], rng)
+            data, why = _noisy_prior_episode(cfg, truth, keys[i], rng, cap)
         else:
-            data, why = _random_episode(cfg, truth, keys[i], rng)
+            data, why = _random_episode(cfg, truth, keys[i], rng, cap)
         out.append({**data, "kind": kind, "outcome": why or "success", "explore": explore})
         bar.update(1)
     bar.close()
@@ -228,17 +266,19 @@ def train_baseline(
     config: baseline.BaselineConfig | None = None,
     progress: bool = True,
     data: str | None = None,
+    backend: str = "native",
 ) -> dict:
     """Collect, train, score, save. Writes OUT/baseline.npz, OUT/dataset.npz and OUT/report.json when
     `out` is given; returns the report (plain data). `data`: the dataset.npz of an earlier run to train
-    on instead of collecting (its `data_s` is then the load time, and "data_from" names the file)."""
+    on instead of collecting (its `data_s` is then the load time, and "data_from" names the file);
+    `backend`: how the episodes are collected (`collect`)."""
     if n_episodes < 2:
         raise ValueError(f"--episodes must be >= 2 (one is held out), got {n_episodes}")
     config = config or baseline.BaselineConfig()
     truth = massdist.named(distribution, cfg.box)
     t0 = time.perf_counter()
     if data is None:
-        episodes = collect(cfg, truth, n_episodes, seed, progress)
+        episodes = collect(cfg, truth, n_episodes, seed, progress, backend)
         tr = transitions_of(episodes)
         tr["episode_kind"] = np.array([e["kind"] for e in episodes])
         tr["episode_outcome"] = np.array([e["outcome"] for e in episodes])
@@ -280,6 +320,7 @@ def train_baseline(
         "heldout_errors": errors,
         "train_errors_first_20000": tr_err,
         "data_from": data or "collected",
+        "backend": None if data else backend,
         "data_s": t_data,
         "train_s": t_train,
         "eval_s": time.perf_counter() - t2,
@@ -288,7 +329,14 @@ def train_baseline(
         os.makedirs(out, exist_ok=True)
         info = {
             k: report[k]
-            for k in ("distribution", "episodes", "transitions", "train_transitions", "episodes_by_kind")
+            for k in (
+                "distribution",
+                "episodes",
+                "transitions",
+                "train_transitions",
+                "episodes_by_kind",
+                "backend",
+            )
         }
         info["heldout_errors"] = {m: errors[m] for m in ("blackbox", "prior", "constant_velocity")}
         report["weights"] = baseline.save(os.path.join(out, "baseline.npz"), model, seed, info)

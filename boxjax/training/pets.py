@@ -101,15 +101,17 @@ def train_pets(
     out: str | None = None,
     config: pets.PETSConfig | None = None,
     progress: bool = True,
+    backend: str = "native",
 ) -> dict:
-    """Load (or collect) W's data, train, score on the held-out episodes, save. Returns the report."""
+    """Load (or collect, with `backend`: `training.baseline.collect`) W's data, train, score on the
+    held-out episodes, save. Returns the report."""
     if data is None and n_episodes < 2:
         raise ValueError(f"--episodes must be >= 2 (one is held out), got {n_episodes}")
     config = config or pets.PETSConfig()
     truth = massdist.named(distribution, cfg.box)
     t0 = time.perf_counter()
     if data is None:
-        episodes = baseline_train.collect(cfg, truth, n_episodes, seed, progress)
+        episodes = baseline_train.collect(cfg, truth, n_episodes, seed, progress, backend)
         tr = baseline_train.transitions_of(episodes)
         kinds = [e["kind"] for e in episodes]
     else:
@@ -140,6 +142,7 @@ def train_pets(
         "epoch_losses": [float(x) for x in losses],
         "heldout_errors": held_err,
         "data_from": data or "collected",
+        "backend": None if data else backend,
         "data_s": t_data,
         "train_s": t_train,
         "eval_s": time.perf_counter() - t2,
@@ -147,7 +150,7 @@ def train_pets(
     if out:
         os.makedirs(out, exist_ok=True)
         info = {k: report[k] for k in ("distribution", "episodes", "transitions", "train_transitions",
-                                       "episodes_by_kind", "data_from", "train_s")}  # fmt: skip
+                                       "episodes_by_kind", "data_from", "backend", "train_s")}  # fmt: skip
         info["heldout_errors"] = {m: held_err[m] for m in ("pets", "blackbox", "prior", "constant_velocity")}
         info["heldout_calibration"] = held_err["pets_calibration"]
         report["weights"] = pets.save(os.path.join(out, "pets.npz"), model, seed, info)
