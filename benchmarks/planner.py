@@ -243,15 +243,29 @@ def _device_kinds() -> list:
     return list(kinds.values())
 
 
+# The planners of `--structure-only`: name -> (SamplingOptions, prior unrolled / looped, also vmapped over
+# boxes). The wide ones without gradient steps are the candidates for an accelerator, where the width of
+# a call is nearly free and its operations are launches (docs/results/planner.md).
+STRUCTURE_PLANNERS = {
+    "default": ({}, (False, True), True),
+    "no_gradient": ({"gradient_steps": 0}, (False, True), True),
+    "wide1024_no_gradient": ({"n_samples": 1024, "gradient_steps": 0}, (True,), False),
+    "cem3x256_no_gradient": (
+        {"n_samples": 256, "update": "cem", "iterations": 3, "n_elite": 32, "gradient_steps": 0},
+        (True,),
+        False,
+    ),
+}
+
+
 def _structure(cfg, masses, window, speed, target, keys, calls: int, device, boxes: int = 16) -> dict:
-    """The default planner and the one without gradient steps, prior looped and unrolled, one call and
-    `boxes` calls vmapped (one box, as many keys), on `device`: compile time, operations and loop
-    iterations per call (`_hlo.dynamic_ops`), and the latency with every variant's calls interleaved
-    (median)."""
+    """The planners of STRUCTURE_PLANNERS on `device`, one call and (where asked) `boxes` calls vmapped
+    (one box, as many keys): compile time, operations and loop iterations per call (`_hlo.dynamic_ops`),
+    and the latency with every variant's calls interleaved (median)."""
     variants = {}
-    for planner_name, kw in (("default", {}), ("no_gradient", {"gradient_steps": 0})):
+    for planner_name, (kw, unrolls, vmapped) in STRUCTURE_PLANNERS.items():
         opts = sp.SamplingOptions(**kw)
-        for unroll in (False, True):
+        for unroll in unrolls:
             model = jax.device_put(prior.make_prior(masses, unroll=unroll), device)
             nominal = sp.initial_nominal(cfg, opts, speed)
             one = jax.jit(lambda k, m, n, o=opts: sp.plan(k, m, window, speed, target, n, cfg, o))
@@ -261,10 +275,8 @@ def _structure(cfg, masses, window, speed, target, keys, calls: int, device, box
                     in_axes=(0, None, None),
                 )
             )
-            for width, fn, key_of in (
-                (1, one, lambda i: keys[i]),
-                (boxes, many, lambda i: keys[i : i + boxes]),
-            ):
+            calls_of = ((1, one, lambda i: keys[i]), (boxes, many, lambda i: keys[i : i + boxes]))
+            for width, fn, key_of in calls_of if vmapped else calls_of[:1]:
                 name = f"{planner_name}_{'unrolled' if unroll else 'looped'}_x{width}"
                 with jax.default_device(device):
                     args = (key_of(0), model, nominal)

@@ -101,7 +101,11 @@ def test_estimator_eval_on_mjx(capsys):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["rotate", "--samples", "-3"], "--samples is an option of the paper planner (--planner paper)"),
+        (
+            ["rotate", "--planner", "simulator", "--samples", "8"],
+            "--samples is an option of the paper and sampling",
+        ),
+        (["rotate", "--samples", "1"], "--samples must be >= 2 with the sampling planner"),
         (["rotate", "--horizon", "0"], "--horizon is an option of the paper planner"),
         (["rotate", "--rule", "weighted"], "it does nothing with --planner sampling"),
         (["rotate", "--planner", "paper", "--samples", "-3"], "--samples must be >= 1, got -3"),
@@ -222,3 +226,23 @@ def test_the_friction_set_reaches_the_controller():
     assert _controller_config(args).friction_set == (0.35, 0.5, 0.65)
     args = resolve(build_parser().parse_args(["evaluate"]))
     assert _controller_config(args).friction_set is None
+
+
+def test_samples_widen_the_planner_chosen():
+    """--samples is the paper planner's actions per step and the sampling planner's rollouts per step."""
+    from boxjax.cli.args import resolve
+    from boxjax.cli.episodes import _controller_config
+    from boxjax.cli.main import build_parser
+    from boxjax.control.config import ControllerConfig
+    from boxjax.planners.sampling import SamplingOptions
+
+    def ctrl(*argv):
+        return _controller_config(resolve(build_parser().parse_args(["evaluate", *argv])))
+
+    wide = ctrl("--samples", "1024", "--gradient-steps", "0")
+    assert wide.sampling == SamplingOptions(n_samples=1024, gradient_steps=0)
+    assert wide.n_samples == ControllerConfig().n_samples  # the paper planner's, unused here
+    assert ctrl("--samples", "128").sampling == SamplingOptions(n_samples=128)
+    assert ctrl().sampling is None
+    paper = ctrl("--planner", "paper", "--samples", "30")
+    assert paper.n_samples == 30 and paper.sampling is None

@@ -212,7 +212,10 @@ def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path
     [
         (["evaluate", "--boxes", "0"], "--boxes"),
         (["evaluate", "--boxes", "3", "--hazardous", "-1"], "--hazardous"),
-        (["evaluate", "--boxes", "3", "--samples", "20"], "paper planner"),
+        (
+            ["evaluate", "--boxes", "3", "--planner", "simulator", "--samples", "20"],
+            "paper and sampling planners",
+        ),
         (["rotate", "--index", "2"], "--replay"),
         (["evaluate", "--boxes", "3", "--planner", "paper", "--gradient-steps", "5"], "sampling planner"),
         (["evaluate", "--boxes", "3", "--gradient-steps", "-1"], "--gradient-steps"),

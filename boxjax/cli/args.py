@@ -3,8 +3,8 @@
 An option is declared with `option(parser, "--flag", default=..., used_by=(...), check=...)`. Its argparse
 default is None, so after parsing the CLI knows exactly which options the user gave; `resolve(args)` then
 fills in the defaults, refuses (ValueError -> exit 2) a given option whose conditions do not hold, naming
-who uses it ("--samples is an option of --planner paper; it does nothing with --planner sampling"), and
-checks its value ("--samples must be >= 1, got -3").
+who uses it ("--rule is an option of the paper planner (--planner paper); it does nothing with --planner
+sampling"), and checks its value ("--samples must be >= 1, got -3").
 
 A condition is a function args -> None (holds) or the rest of the refusal's sentence: `when(dest, *values)`
 (the option is used only when another option has one of these values), `without(dest, why)` (not used
@@ -255,10 +255,10 @@ def planner_options(
         p,
         "--samples",
         type=int,
-        default=50,
-        used_by=(*used_by, paper),
+        used_by=(*used_by, when("planner", "paper", "sampling", owner="the paper and sampling planners")),
         check=at_least(1),
-        help="actions scored per control step",
+        help="actions scored per control step (paper planner, default 50) or rollouts per control step "
+        "(sampling planner, default 64)",
     )
     option(
         p,

@@ -143,15 +143,21 @@ def _controller_config(args):
     if args.planner == "simulator" and getattr(args, "estimator", None) == "learned":
         raise ValueError("--planner simulator needs the true simulator state: use --estimator oracle")
     sampling = None
-    if args.gradient_steps is not None:
+    # --samples: the paper planner's actions per step, or the sampling planner's rollouts per step
+    width = {} if args.samples is None else {"n_samples": args.samples}
+    widths = width if args.planner == "sampling" else {}
+    if widths and args.samples < 2:
+        raise ValueError("--samples must be >= 2 with the sampling planner (the nominal and a rollout)")
+    if args.gradient_steps is not None or widths:
         from boxjax.planners.sampling import SamplingOptions
 
-        sampling = SamplingOptions(gradient_steps=args.gradient_steps)
+        steps = {} if args.gradient_steps is None else {"gradient_steps": args.gradient_steps}
+        sampling = SamplingOptions(**steps, **widths)
     from boxjax.control import monitor
 
     return ControllerConfig(
         rule=args.rule,
-        n_samples=args.samples,
+        **(width if args.planner == "paper" else {}),
         horizon=args.horizon,
         variant=args.variant,
         planner=args.planner,
