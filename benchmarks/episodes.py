@@ -13,6 +13,7 @@ Prints ONE JSON object (the last line).
 Run: python benchmarks/episodes.py [--boxes 32] [--slots 8] [--devices 1] [--seed 0] [--max-steps 600]
                                   [--skip-single]
                                   [--widths 1 8 32] [--mjx-slots 16 64] [--skip-native]
+                                  [--samples N] [--gradient-steps N]
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from boxjax import control as controller
 from boxjax.config import DEFAULT  # noqa: E402
 from boxjax.control import batch, device_loop
 from boxjax.experiments import evaluation as experiments
+from boxjax.planners.sampling import SamplingOptions
 
 
 def _episodes(cfg, boxes, idx):
@@ -152,13 +154,20 @@ def main() -> None:
         help="the on-device loop (MJX) at these widths (boxes per program call); none: skip",
     )
     ap.add_argument("--skip-native", action="store_true", help="time the on-device loop only")
+    ap.add_argument("--samples", type=int, help="the sampling planner's rollouts per step (default 64)")
+    ap.add_argument("--gradient-steps", type=int, help="its Adam steps through the prior (default 5)")
     args = ap.parse_args()
     if args.boxes < 1 or (args.slots is not None and args.slots < 1) or args.devices < 1:
         ap.error("--boxes, --slots and --devices must be >= 1")
     n_dev = batch.use_host_devices(args.devices)  # before any JAX computation
     args.slots = args.slots or batch.SLOTS_PER_DEVICE * n_dev
     cfg = DEFAULT
-    ctrl = controller.ControllerConfig()
+    planner = {
+        k: v
+        for k, v in (("n_samples", args.samples), ("gradient_steps", args.gradient_steps))
+        if v is not None
+    }
+    ctrl = controller.ControllerConfig(sampling=SamplingOptions(**planner) if planner else None)
     n_warm = min(args.slots, 4)
     boxes = experiments.make_boxes(cfg, args.boxes + n_warm, 0, args.seed)
     warm_idx = range(args.boxes, args.boxes + n_warm)
@@ -170,6 +179,7 @@ def main() -> None:
         "devices": n_dev,
         "seed": args.seed,
         "planner": ctrl.planner,
+        "sampling": planner or "default",
         **machine(),
     }
 

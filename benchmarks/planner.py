@@ -94,7 +94,7 @@ def main() -> None:
     ap.add_argument(
         "--structure-only",
         action="store_true",
-        help="the default planner's operations, loops, compile time and latency, prior looped / unrolled",
+        help="the planners' operations, loops, compile time and latency (STRUCTURE_PLANNERS), every device",
     )
     args = ap.parse_args()
     calls = max(args.calls, 200)
