@@ -163,7 +163,8 @@ def test_help_shows_the_defaults(capsys):
     with pytest.raises(SystemExit):
         main(["rotate", "--help"])
     out = capsys.readouterr().out
-    assert "(default 50)" in out and "--animate" in out and "--config" in out and "--box" in out
+    assert "(default random)" in out and "--animate" in out and "--config" in out and "--box" in out
+    assert "(default 1)" in out and "--samples" in out
 
 
 def test_every_command_has_help(capsys):
