@@ -21,7 +21,6 @@ nothing there). The split is by episode (every `holdout_every`-th episode is hel
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -125,8 +124,7 @@ def random_drive(cfg: Config, rng: np.random.Generator, target, left: int, s, b)
 
 def _random_episode(cfg: Config, truth, key, rng: np.random.Generator, max_steps: int) -> tuple:
 
-    cfg_free = cfg.replace(task=dataclasses.replace(cfg.task, target_yaw_delta=1e4))
-    env = controller.env_for(cfg_free, "native")
+    env = controller.env_for(baseline_device.free_world(cfg), "native")
     state = env.reset(key, truth)
     rows, actions = [state], []
     target, left = np.zeros(2), 0

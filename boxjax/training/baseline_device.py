@@ -47,8 +47,8 @@ class Drive(NamedTuple):
     left: jax.Array
 
 
-def _free(cfg: Config) -> Config:
-    """The random drive's world: the success rule off (the box may keep turning)."""
+def free_world(cfg: Config) -> Config:
+    """The random drive's world (both backends): the success rule off (the box may keep turning)."""
     return cfg.replace(task=dataclasses.replace(cfg.task, target_yaw_delta=1e4))
 
 
@@ -123,7 +123,7 @@ def _programs(cfg: Config, kind: str, block: int):
     ctrl = ControllerConfig()
     opts = ctrl.sampling or SamplingOptions()
     cap = opts.speed_cap or cfg.gripper.belt_speed_limit
-    env = mjx_backend.env_for(_free(cfg) if kind == "random" else cfg)
+    env = mjx_backend.env_for(free_world(cfg) if kind == "random" else cfg)
     mpc = make_planner(cfg, ctrl) if kind == "prior-noisy" else None
 
     def start(params, key):
@@ -195,7 +195,7 @@ def perturbed_episodes(
     if jax.default_backend() == "cpu" and width // n_dev > mjx_backend.CPU_CHUNK:
         raise ValueError(f"at most {mjx_backend.CPU_CHUNK * n_dev} slots on this CPU, got {width}")
     start, run_block = _programs(cfg, kind, block)
-    env_cfg = _free(cfg) if kind == "random" else cfg
+    env_cfg = free_world(cfg) if kind == "random" else cfg
     params = mjx_backend.env_for(env_cfg).box_params(truth)
     model = prior.make_prior(massdist.voxel_masses(truth, cfg.box), None, cfg.box, cfg.gripper)
     max_steps = cfg.task.max_steps if max_steps is None else max_steps
