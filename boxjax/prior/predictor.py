@@ -147,9 +147,9 @@ class PriorParams:
       ("slip"): the same arithmetic in fewer, larger operations, and no loop whose condition a GPU reads
       back to the host every iteration. The default planner's call then runs 2.3x fewer operations and
       6.6x fewer loop iterations (43.7 k / 140 against 102 k / 922; 40.2 k since the two candidates'
-      solves are batched); on a 2-core CPU it is 5-9 % faster,
-      compiles in up to 50 % more time (`benchmarks/planner.py --structure-only`), and turned as many
-      boxes (284 / 300 both, oracle, seeds 0-2). False: `lax.scan` loops (the prior before 2026-12-06).
+      solves are batched); on a 2-core CPU it is 5-9 % faster, compiles in up to 50 % more time
+      (`benchmarks/planner.py --structure-only`), and turned as many boxes (284 / 300 both, oracle,
+      seeds 0-2). False: `lax.scan` loops (the prior before 2026-12-06).
     """
 
     variant: str = "slip"

@@ -175,19 +175,16 @@ def collect(
     out = []
     for i in range(n_episodes):
         kind = KINDS[i % len(KINDS)]
-        explore = False
         if kind == "prior":
             explore = i % 2 == 0
             res = controller.run_episode(
                 cfg, truth, keys[i], ctrl=controller.ControllerConfig(explore=explore), max_steps=cap
             )
-            data = {"s": res.trace.s, "belt_speed": res.trace.belt_speed, "actions": res.trace.actions}
-            why = None if res.summary["success"] else res.summary["failed_reason"]
-        elif kind == "prior-noisy":
-            data, why = _noisy_prior_episode(cfg, truth, keys[i], rng, cap)
+            out.append(baseline_device.prior_episode(res, explore))
         else:
-            data, why = _random_episode(cfg, truth, keys[i], rng, cap)
-        out.append({**data, "kind": kind, "outcome": why or "success", "explore": explore})
+            episode = _noisy_prior_episode if kind == "prior-noisy" else _random_episode
+            data, why = episode(cfg, truth, keys[i], rng, cap)
+            out.append({**data, "kind": kind, "outcome": why or "success", "explore": False})
         bar.update(1)
     bar.close()
     return out

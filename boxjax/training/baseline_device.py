@@ -229,6 +229,14 @@ def perturbed_episodes(
     return out
 
 
+def prior_episode(result, explore: bool) -> dict:
+    """W's episode dict of a "prior" kind episode (an EpisodeResult of either backend's closed loop)."""
+    s = result.summary
+    data = {"s": result.trace.s, "belt_speed": result.trace.belt_speed, "actions": result.trace.actions}
+    outcome = "success" if s["success"] else (s["failed_reason"] or "success")
+    return {**data, "kind": "prior", "outcome": outcome, "explore": explore}
+
+
 def collect(cfg: Config, truth, keys, progress=None, max_steps: int | None = None) -> list[dict]:
     """W's episodes on box `truth`, one per key, episode i of kind `rules.KINDS[i % 5]` (as the host's
     `training.baseline.collect`): the "prior" ones through `device_loop.run_episodes` (with the exploration
@@ -248,9 +256,7 @@ def collect(cfg: Config, truth, keys, progress=None, max_steps: int | None = Non
             max_steps=max_steps, progress=lambda b, r: tick(1),
         )  # fmt: skip
         for i, r in zip(idx, res, strict=True):
-            why = None if r.summary["success"] else r.summary["failed_reason"]
-            data = {"s": r.trace.s, "belt_speed": r.trace.belt_speed, "actions": r.trace.actions}
-            out[i] = {**data, "kind": "prior", "outcome": why or "success", "explore": explore}
+            out[i] = prior_episode(r, explore)
     for kind in ("prior-noisy", "random"):
         idx = [i for i in range(n) if kinds[i] == kind]
         ended = [0]
