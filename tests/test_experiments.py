@@ -42,6 +42,25 @@ def test_boxes_come_from_the_seed_and_follow_their_labels():
     assert not np.array_equal(experiments.make_boxes(CFG, 6, 0, seed=5).occupancy, a.occupancy[:6])
 
 
+@pytest.mark.parametrize("family", ["items", "slabs", "scatter"])
+def test_safe_boxes_of_another_family(family):
+    """--safe-family F: the label-safe draws of F's free sampler, in sequence from the safe key (so the
+    hazardous boxes and every episode key are those of the default family's evaluation)."""
+    base = experiments.make_boxes(CFG, 4, 2, seed=3)
+    other = experiments.make_boxes(CFG, 4, 2, seed=3, safe_family=family)
+    assert list(other.family) == [f"safe-{family}"] * 4 + ["gaussian"] * 2
+    assert not other.hazardous[:4].any()
+    np.testing.assert_array_equal(other.occupancy[4:], base.occupancy[4:])
+    np.testing.assert_array_equal(other.keys, base.keys)
+    key_safe = jax.random.split(jax.random.PRNGKey(3), 3)[0]
+    draw = massdist.sampler(family, hazardous=False)
+    expect = [draw(jax.random.fold_in(key_safe, i), CFG.box) for i in range(40)]
+    expect = [d for d in expect if not bool(massdist.is_hazardous(d, CFG.box))][:4]
+    np.testing.assert_array_equal(other.occupancy[:4], np.stack([np.asarray(d.occupancy) for d in expect]))
+    with pytest.raises(ValueError, match="unknown safe-box family"):
+        experiments.make_boxes(CFG, 1, 0, seed=0, safe_family="bricks")
+
+
 def test_summary_counts_and_interval():
     rows = [
         {

@@ -503,6 +503,7 @@ def cmd_evaluate(args) -> dict:
             estimator=args.estimator,
             ctrl=ctrl,
             family=args.hazard_family,
+            safe_family=args.safe_family,
             progress=not args.quiet,
             estimator_fn=None if est == "oracle" else est,
             batched=False if args.one_at_a_time else None,
@@ -676,6 +677,15 @@ def add_parsers(sub) -> None:
         used_by=(no_file, lambda a: None if a.hazardous > 0 else "does nothing with --hazardous 0"),
         help="gaussian: massdist.sample_hazardous (H's training family); items: 1-16 voxels; slabs: a wall "
         "1-2 voxels thick; scatter: loose contents, held out of all training and tuning",
+    )
+    option(
+        v,
+        "--safe-family",
+        default="gaussian",
+        choices=("gaussian", "items", "slabs", "scatter"),
+        used_by=(no_file,),
+        help="the safe boxes' family (the label-safe draws of its free sampler): gaussian: massdist.sample "
+        "(paper §4.3, what H and the controller were shaped on); items, slabs; scatter: held out",
     )
     option(v, "--seed", type=int, default=0, help="draws the boxes and every episode's key")
     option(v, "--estimator", default="oracle", choices=("oracle", "learned"), help="oracle or the learned H")

@@ -42,8 +42,8 @@ class EvalBoxes(NamedTuple):
     """The boxes of one evaluation. N = safe + hazardous; the safe ones come first.
 
     occupancy: (N, nx, ny, nz) float32; total_mass: (N,) kg; hazardous: (N,) bool (as drawn);
-    family: (N,) str, how each box was drawn ("safe", or a hazardous family); keys: (N, 2) uint32 episode
-    keys (raw `jax.random.PRNGKey` data).
+    family: (N,) str, how each box was drawn ("safe" or "safe-F", `safe_label`; or a hazardous family);
+    keys: (N, 2) uint32 episode keys (raw `jax.random.PRNGKey` data).
     """
 
     occupancy: np.ndarray
@@ -72,12 +72,16 @@ def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float,
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def sample_safe(key, n: int, cfg: Config) -> list[massdist.MassDistribution]:
-    """n random label-safe distributions (paper §4.3): `massdist.sample` draws with the hazardous ones
-    rejected; draw i uses `fold_in(key, i)`."""
+def sample_safe(key, n: int, cfg: Config, family: str = "gaussian") -> list[massdist.MassDistribution]:
+    """n random label-safe distributions: draws of a family's free sampler (`massdist.sampler(family,
+    hazardous=False)`; "gaussian" is `massdist.sample`, paper §4.3) with the hazardous ones rejected; draw i
+    uses `fold_in(key, i)`."""
+    if family not in HAZARD_FAMILIES:
+        raise ValueError(f"unknown safe-box family {family!r}; choose one of {HAZARD_FAMILIES}")
+    draw = massdist.sampler(family, hazardous=False)
     out, i = [], 0
     while len(out) < n:
-        d = massdist.sample(jax.random.fold_in(key, i), cfg.box)
+        d = draw(jax.random.fold_in(key, i), cfg.box)
         i += 1
         if not bool(massdist.is_hazardous(d, cfg.box)):
             out.append(jax.tree.map(np.asarray, d))
@@ -97,10 +101,24 @@ def sample_hazard_family(
     return [jax.tree.map(np.asarray, draw(jax.random.fold_in(key, i), cfg.box)) for i in range(n)]
 
 
-def make_boxes(cfg: Config, n_safe: int, n_hazardous: int, seed: int, family: str = "gaussian") -> EvalBoxes:
-    """The boxes and episode keys of `evaluate(..., seed)`."""
+def safe_label(safe_family: str) -> str:
+    """How `EvalBoxes.family` names a safe box: "safe" for the paper's family, "safe-F" for family F."""
+    return "safe" if safe_family == "gaussian" else f"safe-{safe_family}"
+
+
+def make_boxes(
+    cfg: Config,
+    n_safe: int,
+    n_hazardous: int,
+    seed: int,
+    family: str = "gaussian",
+    safe_family: str = "gaussian",
+) -> EvalBoxes:
+    """The boxes and episode keys of `evaluate(..., seed)`: the safe boxes of `safe_family`, the hazardous
+    ones of `family`. The draws do not depend on the other family's choice (each has its own key)."""
     key_safe, key_haz, key_ep = jax.random.split(jax.random.PRNGKey(seed), 3)
-    dists = sample_safe(key_safe, n_safe, cfg) + sample_hazard_family(key_haz, n_hazardous, cfg, family)
+    dists = sample_safe(key_safe, n_safe, cfg, safe_family)
+    dists += sample_hazard_family(key_haz, n_hazardous, cfg, family)
     n = len(dists)
     keys = np.stack([np.asarray(jax.random.key_data(jax.random.fold_in(key_ep, j))) for j in range(n)])
     occ = np.stack([d.occupancy for d in dists]) if n else np.zeros((0, *cfg.box.grid), np.float32)
@@ -108,7 +126,7 @@ def make_boxes(cfg: Config, n_safe: int, n_hazardous: int, seed: int, family: st
         occupancy=occ.astype(np.float32),
         total_mass=np.asarray([float(d.total_mass) for d in dists], np.float32),
         hazardous=np.asarray([bool(massdist.is_hazardous(d, cfg.box)) for d in dists], bool),
-        family=np.asarray(["safe"] * n_safe + [family] * n_hazardous),
+        family=np.asarray([safe_label(safe_family)] * n_safe + [family] * n_hazardous),
         keys=keys.astype(np.uint32).reshape(n, 2),
     )
 
@@ -226,7 +244,12 @@ class Evaluation(NamedTuple):
 
 
 def settings(
-    estimator: str, ctrl: ControllerConfig, seed: int, family: str, faults: Faults = NO_FAULTS
+    estimator: str,
+    ctrl: ControllerConfig,
+    seed: int,
+    family: str,
+    faults: Faults = NO_FAULTS,
+    safe_family: str = "gaussian",
 ) -> dict:
     """What an evaluation ran with (enough to rebuild the same episodes)."""
     c = dataclasses.asdict(ctrl)
@@ -234,6 +257,7 @@ def settings(
         "estimator": estimator,
         "seed": seed,
         "hazard_family": family,
+        "safe_family": safe_family,
         "faults": faults.to_dict(),
         "controller": json.loads(
             json.dumps(c, default=lambda o: dataclasses.asdict(o) if dataclasses.is_dataclass(o) else str(o))
@@ -250,6 +274,7 @@ def evaluate(
     estimator: str = "oracle",
     ctrl: ControllerConfig = ControllerConfig(),  # noqa: B008 (frozen dataclass: immutable)
     family: str = "gaussian",
+    safe_family: str = "gaussian",
     progress: bool = True,
     estimator_fn: Any = None,
     batched: bool | None = None,
@@ -264,7 +289,7 @@ def evaluate(
     Args:
       estimator: "oracle" (the true distribution) or "learned" (the shipped H, or `estimator_fn`).
       ctrl: the controller (planner, prior variant, options, its runtime safety monitor). family: the
-        hazardous boxes' family.
+        hazardous boxes' family; safe_family: the safe boxes' (`sample_safe`; "gaussian" is the paper's).
       faults: how the simulated world differs from the controller's (`boxjax.sim.faults`), each box's drawn
         from its own episode key.
       batched: run the episodes together (`boxjax.control.batch`: `slots` boxes per planner call; default
@@ -302,7 +327,7 @@ def evaluate(
     if estimator == "learned":
         est = estimator_fn or learned_estimator(cfg)
     t0 = time.perf_counter()
-    boxes = make_boxes(cfg, n_safe, n_hazardous, seed, family)
+    boxes = make_boxes(cfg, n_safe, n_hazardous, seed, family, safe_family)
     mine = distributed.share(len(boxes))  # every box, unless this is one process of several
     bar = None
     if progress:
@@ -353,7 +378,7 @@ def evaluate(
         bar.close()
     summary = {
         **summarize(rows),
-        **settings(estimator, ctrl, seed, family, faults),
+        **settings(estimator, ctrl, seed, family, faults, safe_family),
         "batched": bool(batched),
         "backend": backend,
         **({"processes": jax.process_count()} if jax.process_count() > 1 else {}),
