@@ -139,6 +139,7 @@ def test_estimator_eval_on_mjx(capsys):
         ),
         (["evaluate", "--hazard-family", "items"], "does nothing with --hazardous 0"),
         (["evaluate", "--box", "b.npz", "--hazardous", "3"], "--hazardous does nothing with --box"),
+        (["evaluate", "--box", "b.npz", "--safe-family", "items"], "--safe-family does nothing with --box"),
         (["evaluate", "--weights", "h.npz"], "--weights is an option of --estimator learned"),
         (["fault-table", "--weights", "h.npz"], "--weights is an option of --estimator learned"),
         (["fault-table", "--estimator", "learned", "--weights", "no/such.npz"], "no such checkpoint file"),

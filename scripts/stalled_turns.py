@@ -1,0 +1,146 @@
+"""Why safe boxes are not turned: re-run an evaluation's not-turned safe boxes with another planner, and
+compare the prior's yaw predictions with the simulator's along a stalled turn and along a reference turn.
+
+    boxjax evaluate --boxes 100 --safe-family items --seed 0 --out runs/items_s0
+    python scripts/stalled_turns.py rerun --evals runs/items_s0 --planner simulator --out ref.json
+    python scripts/stalled_turns.py rerun --evals runs/items_s0 --planner wide --out wide.json
+    python scripts/stalled_turns.py predict --eval runs/items_s0 --index 8 14 40 --out predict.json
+
+`rerun`: every safe box of the evaluations that was neither turned nor refused, run again closed loop with
+the same box and episode key (oracle), planning with the simulator itself (`--planner simulator`, the
+privileged reference: docs/results/random-boxes.md) or with 1024 rollouts and no gradient steps
+(`--planner wide`). `predict`: the evaluation's episode (replayed bit for bit) and the reference's episode of
+the same box; along each turn, every 5 control steps, the yaw change over the next 10 steps predicted by the
+physics prior on the TRUE mass distribution from the observed window and the actions sent, against the
+simulated one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from boxjax import planning
+from boxjax.config import DEFAULT
+from boxjax.control.config import ControllerConfig
+from boxjax.control.episode import run_episode
+from boxjax.control.models import planning_model
+from boxjax.experiments import evaluation as ev
+from boxjax.fileio import atomic_path
+from boxjax.planners.sampling import SamplingOptions
+
+K = 10  # control steps of each yaw prediction
+EVERY = 5  # control steps between predictions
+
+
+def _controller(summary: dict, planner: str) -> ControllerConfig:
+    base = ev.controller_from_settings(summary)
+    if planner == "simulator":
+        return dataclasses.replace(base, planner="simulator")
+    wide = dataclasses.replace(base.sampling or SamplingOptions(), n_samples=1024, gradient_steps=0)
+    return dataclasses.replace(base, sampling=wide)
+
+
+def rerun(dirs: list[str], planner: str) -> dict:
+    out = {}
+    for d in dirs:
+        boxes, summary = ev.load_boxes(d)
+        ctrl = _controller(summary, planner)
+        rows = json.load(open(os.path.join(d, "evaluation.json")))["rows"]
+        for r in rows:
+            if r["hazardous"] or r["outcome"] in ("success", "aborted"):
+                continue
+            j = r["index"]
+            t0 = time.time()
+            key = jax.random.wrap_key_data(boxes.keys[j])
+            s = run_episode(DEFAULT, boxes.dist(j), key, estimator="oracle", ctrl=ctrl).summary
+            out[f"{d}#{j}"] = {
+                "evaluation": r["outcome"],
+                planner: ev.outcome(s),
+                "steps": int(s["steps"]),
+                "mass_kg": round(r["total_mass_kg"], 2),
+                "com_cm": r["com_cm"],
+            }
+            print(
+                d, j, r["outcome"], "->", ev.outcome(s), s["steps"], f"{time.time() - t0:.0f} s", flush=True
+            )
+    return out
+
+
+def yaw_predictions(res) -> dict:
+    """10-step yaw changes along the turn of an episode, predicted on the truth and simulated (degrees)."""
+    n0 = res.summary["exploration_steps"]
+    s, belt, a = (
+        jnp.asarray(x[n0:], jnp.float32) for x in (res.trace.s, res.trace.belt_speed, res.trace.actions)
+    )
+    model = planning_model(DEFAULT, ControllerConfig(), res.truth)
+    w = planning.MIN_WINDOW
+    starts = np.arange(w - 1, s.shape[0] - K, EVERY)
+    roll = jax.jit(model.rollout_sequence)
+    pred = np.array(
+        [float(roll(s[t - w + 1 : t + 1], belt[t], a[t : t + K])[-1, 4] - s[t, 4]) for t in starts]
+    )
+    sim = np.array([float(s[t + K, 4] - s[t, 4]) for t in starts])
+    pred, sim = np.degrees(pred), np.degrees(sim)
+    first = (
+        starts < 150
+    )  # the first 150 control steps of the turn (windows every 5 steps: /2 for 10-step sums)
+    return {
+        "outcome": ev.outcome(res.summary),
+        "steps": int(res.summary["steps"]),
+        "sim_mean_deg": float(sim.mean()),
+        "prior_mean_deg": float(pred.mean()),
+        "corr": float(np.corrcoef(sim, pred)[0, 1]),
+        "first_150_steps_sim_deg": float(sim[first].sum() * EVERY / K),
+        "first_150_steps_prior_deg": float(pred[first].sum() * EVERY / K),
+        "carriages_cm": [float(100 * np.mean(s[:150, 0])), float(100 * np.mean(s[:150, 1]))],
+    }
+
+
+def predict(d: str, indices: list[int]) -> dict:
+    boxes, summary = ev.load_boxes(d)
+    ctrl = _controller(summary, "simulator")
+    out = {}
+    for j in indices:
+        key = jax.random.wrap_key_data(boxes.keys[j])
+        runs = {
+            "evaluation": ev.replay(DEFAULT, d, j)[0],
+            "simulator": run_episode(DEFAULT, boxes.dist(j), key, estimator="oracle", ctrl=ctrl),
+        }
+        out[f"{d}#{j}"] = {name: yaw_predictions(res) for name, res in runs.items()}
+        print(json.dumps({f"{d}#{j}": out[f"{d}#{j}"]}), flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="what", required=True)
+    r = sub.add_parser("rerun", help="the not-turned safe boxes with another planner")
+    r.add_argument("--evals", nargs="+", required=True, help="evaluation directories (evaluate --out)")
+    r.add_argument("--planner", choices=("simulator", "wide"), default="simulator")
+    p = sub.add_parser("predict", help="the prior's yaw predictions along the stalled and the reference turn")
+    p.add_argument("--eval", required=True, help="an evaluation directory (evaluate --out)")
+    p.add_argument("--index", nargs="+", type=int, required=True, help="boxes of that evaluation")
+    for q in (r, p):
+        q.add_argument("--out", required=True, help="JSON file")
+    args = ap.parse_args()
+    for d in args.evals if args.what == "rerun" else [args.eval]:
+        if not os.path.exists(os.path.join(d, "evaluation.json")):
+            ap.error(f"{d} is not an evaluation output (no evaluation.json)")
+    if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
+        ap.error(f"--out {args.out}: its directory does not exist")
+    result = rerun(args.evals, args.planner) if args.what == "rerun" else predict(args.eval, args.index)
+    with atomic_path(args.out, suffix=".json") as tmp:
+        with open(tmp, "w") as f:
+            json.dump(result, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
