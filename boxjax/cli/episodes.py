@@ -452,7 +452,7 @@ def _evaluate_file_box(args, cfg, est, ctrl, faults):
         sys.stderr.write("\n")
     summary = {
         **experiments.summarize(rows),
-        **experiments.settings(args.estimator, ctrl, args.seed, "file", faults),
+        **experiments.settings(args.estimator, ctrl, args.seed, "file", faults, safe_family="file"),
         "box": args.box,
         "wall_s": time.perf_counter() - t0,
     }
