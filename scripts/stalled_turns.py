@@ -21,13 +21,14 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import planning
 from boxjax.config import DEFAULT
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import run_episode
@@ -35,6 +36,9 @@ from boxjax.control.models import planning_model
 from boxjax.experiments import evaluation as ev
 from boxjax.fileio import atomic_path
 from boxjax.planners.sampling import SamplingOptions
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import turn_evidence  # noqa: E402  (the k-step predictions along a recorded turn)
 
 K = 10  # control steps of each yaw prediction
 EVERY = 5  # control steps between predictions
@@ -81,17 +85,13 @@ def yaw_predictions(res) -> dict:
         jnp.asarray(x[n0:], jnp.float32) for x in (res.trace.s, res.trace.belt_speed, res.trace.actions)
     )
     model = planning_model(DEFAULT, ControllerConfig(), res.truth)
-    w = planning.MIN_WINDOW
-    starts = np.arange(w - 1, s.shape[0] - K, EVERY)
-    roll = jax.jit(model.rollout_sequence)
-    pred = np.array(
-        [float(roll(s[t - w + 1 : t + 1], belt[t], a[t : t + K])[-1, 4] - s[t, 4]) for t in starts]
-    )
-    sim = np.array([float(s[t + K, 4] - s[t, 4]) for t in starts])
-    pred, sim = np.degrees(pred), np.degrees(sim)
-    first = (
-        starts < 150
-    )  # the first 150 control steps of the turn (windows every 5 steps: /2 for 10-step sums)
+    # prediction - simulation from every window of the turn (turn_evidence: one jitted, vmapped call)
+    err = turn_evidence.prediction_errors(model, s, belt, a, K)[::EVERY]
+    starts = np.arange(turn_evidence.W - 1, s.shape[0] - K)[::EVERY]
+    yaw = np.asarray(s[:, 4], np.float64)
+    sim = yaw[starts + K] - yaw[starts]
+    pred, sim = np.degrees(err[:, 4] + sim), np.degrees(sim)
+    first = starts < 150  # the turn's first 150 control steps (a window every 5 steps: 10-step sums / 2)
     return {
         "outcome": ev.outcome(res.summary),
         "steps": int(res.summary["steps"]),
