@@ -6,13 +6,21 @@ compare the prior's yaw predictions with the simulator's along a stalled turn an
     python scripts/stalled_turns.py rerun --evals runs/items_s0 --planner wide --out wide.json
     python scripts/stalled_turns.py predict --eval runs/items_s0 --index 8 14 40 --out predict.json
 
+    python scripts/stalled_turns.py carriage --eval runs/items_s0 --index 8 14 40 --out carriage.json
+
 `rerun`: every safe box of the evaluations that was neither turned nor refused, run again closed loop with
 the same box and episode key (oracle), planning with the simulator itself (`--planner simulator`, the
 privileged reference: docs/results/random-boxes.md) or with 1024 rollouts and no gradient steps
 (`--planner wide`). `predict`: the evaluation's episode (replayed bit for bit) and the reference's episode of
 the same box; along each turn, every 5 control steps, the yaw change over the next 10 steps predicted by the
 physics prior on the TRUE mass distribution from the observed window and the actions sent, against the
-simulated one.
+simulated one. `carriage`: along the same two turns, from every state of the turn's first 200 control
+steps, one control step in the simulator and in the prior with the action sent and with its carriage moves
+removed (dp = 0): how much of the yaw each says the carriage moves made, and whether they agree.
+
+`rerun --planner simulator-planar` plans with the simulator started from what a planar observation shows
+(`SimulatorOptions(start="planar")`: the box flat, at the observed pose and finite-difference velocities)
+instead of the exact state.
 """
 
 from __future__ import annotations
@@ -31,11 +39,13 @@ import numpy as np
 
 from boxjax.config import DEFAULT
 from boxjax.control.config import ControllerConfig
-from boxjax.control.episode import run_episode
+from boxjax.control.episode import env_for, run_episode
 from boxjax.control.models import planning_model
 from boxjax.experiments import evaluation as ev
 from boxjax.fileio import atomic_path
 from boxjax.planners.sampling import SamplingOptions
+from boxjax.planners.simulator import SimulatorOptions
+from boxjax.prior import predictor as prior
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import turn_evidence  # noqa: E402  (the k-step predictions along a recorded turn)
@@ -48,6 +58,8 @@ def _controller(summary: dict, planner: str) -> ControllerConfig:
     base = ev.controller_from_settings(summary)
     if planner == "simulator":
         return dataclasses.replace(base, planner="simulator")
+    if planner == "simulator-planar":
+        return dataclasses.replace(base, planner="simulator", simulator=SimulatorOptions(start="planar"))
     wide = dataclasses.replace(base.sampling or SamplingOptions(), n_samples=1024, gradient_steps=0)
     return dataclasses.replace(base, sampling=wide)
 
@@ -105,16 +117,70 @@ def yaw_predictions(res) -> dict:
 
 
 def predict(d: str, indices: list[int]) -> dict:
-    boxes, summary = ev.load_boxes(d)
-    ctrl = _controller(summary, "simulator")
     out = {}
     for j in indices:
-        key = jax.random.wrap_key_data(boxes.keys[j])
-        runs = {
-            "evaluation": ev.replay(DEFAULT, d, j)[0],
-            "simulator": run_episode(DEFAULT, boxes.dist(j), key, estimator="oracle", ctrl=ctrl),
-        }
-        out[f"{d}#{j}"] = {name: yaw_predictions(res) for name, res in runs.items()}
+        out[f"{d}#{j}"] = {name: yaw_predictions(res) for name, res in _two_turns(d, j)[0].items()}
+        print(json.dumps({f"{d}#{j}": out[f"{d}#{j}"]}), flush=True)
+    return out
+
+
+def carriage_effects(res, key, steps: int = 200) -> dict:
+    """From each state of the turn (its first `steps` control steps), the yaw change of one control step
+    with the action sent and with its carriage moves zeroed, in the simulator (the episode's states
+    re-simulated from its key and actions) and in the prior on the true mass distribution (degrees)."""
+    env = env_for(DEFAULT, "native")
+    st = env.reset(key, res.truth)
+    acts = np.asarray(res.trace.actions, np.float64)
+    n0 = res.summary["exploration_steps"]
+    model = planning_model(DEFAULT, ControllerConfig(), res.truth)
+    pred = jax.jit(jax.vmap(lambda w, b, a: prior.predict(model, w, b, a), in_axes=(None, None, 0)))
+    seen, rows, drift = [np.asarray(st.s)], [], 0.0
+    for t, a in enumerate(acts[: n0 + steps]):
+        if t >= n0 + turn_evidence.W - 1:
+            alt = np.stack([a, [a[0], a[1], 0.0, 0.0]])
+            sim = [float(env.step(st, x).s[4] - st.s[4]) for x in alt]
+            w = jnp.asarray(np.stack(seen[-turn_evidence.W :]), jnp.float32)
+            p = np.asarray(pred(w, jnp.asarray(st.belt_speed, jnp.float32), jnp.asarray(alt, jnp.float32)))
+            rows.append([*sim, *(p[:, 4] - float(st.s[4]))])
+        st = env.step(st, a)
+        seen.append(np.asarray(st.s))
+        drift = max(drift, float(np.max(np.abs(seen[-1] - np.asarray(res.trace.s[t + 1])))))
+    r = np.degrees(np.array(rows))
+    sim_eff, prior_eff = r[:, 0] - r[:, 1], r[:, 2] - r[:, 3]
+    return {
+        "outcome": ev.outcome(res.summary),
+        "steps": len(rows),
+        "replay_max_abs_diff": drift,  # the re-simulated states against the recorded ones (0: bit for bit)
+        "sim_deg_per_step": float(r[:, 0].mean()),
+        "sim_without_carriage_moves": float(r[:, 1].mean()),
+        "prior_deg_per_step": float(r[:, 2].mean()),
+        "prior_without_carriage_moves": float(r[:, 3].mean()),
+        "carriage_effect_sim": float(sim_eff.mean()),
+        "carriage_effect_prior": float(prior_eff.mean()),
+        "carriage_effect_abs_sim": float(np.abs(sim_eff).mean()),
+        "carriage_effect_abs_prior": float(np.abs(prior_eff).mean()),
+        "carriage_effect_corr": float(np.corrcoef(sim_eff, prior_eff)[0, 1]),
+    }
+
+
+def _two_turns(d: str, j: int) -> tuple[dict, jax.Array]:
+    """The evaluation's episode of box j (replayed) and the simulator reference's of the same box, and
+    the episode key."""
+    boxes, summary = ev.load_boxes(d)
+    key = jax.random.wrap_key_data(boxes.keys[j])
+    return {
+        "evaluation": ev.replay(DEFAULT, d, j)[0],
+        "simulator": run_episode(
+            DEFAULT, boxes.dist(j), key, estimator="oracle", ctrl=_controller(summary, "simulator")
+        ),
+    }, key
+
+
+def carriage(d: str, indices: list[int]) -> dict:
+    out = {}
+    for j in indices:
+        runs, key = _two_turns(d, j)
+        out[f"{d}#{j}"] = {name: carriage_effects(res, key) for name, res in runs.items()}
         print(json.dumps({f"{d}#{j}": out[f"{d}#{j}"]}), flush=True)
     return out
 
@@ -124,11 +190,15 @@ def main() -> None:
     sub = ap.add_subparsers(dest="what", required=True)
     r = sub.add_parser("rerun", help="the not-turned safe boxes with another planner")
     r.add_argument("--evals", nargs="+", required=True, help="evaluation directories (evaluate --out)")
-    r.add_argument("--planner", choices=("simulator", "wide"), default="simulator")
+    r.add_argument("--planner", choices=("simulator", "simulator-planar", "wide"), default="simulator")
     p = sub.add_parser("predict", help="the prior's yaw predictions along the stalled and the reference turn")
-    p.add_argument("--eval", required=True, help="an evaluation directory (evaluate --out)")
-    p.add_argument("--index", nargs="+", type=int, required=True, help="boxes of that evaluation")
-    for q in (r, p):
+    c = sub.add_parser(
+        "carriage", help="the yaw the carriage moves make along both turns: simulator and prior"
+    )
+    for q in (p, c):
+        q.add_argument("--eval", required=True, help="an evaluation directory (evaluate --out)")
+        q.add_argument("--index", nargs="+", type=int, required=True, help="boxes of that evaluation")
+    for q in (r, p, c):
         q.add_argument("--out", required=True, help="JSON file")
     args = ap.parse_args()
     for d in args.evals if args.what == "rerun" else [args.eval]:
@@ -136,7 +206,10 @@ def main() -> None:
             ap.error(f"{d} is not an evaluation output (no evaluation.json)")
     if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
         ap.error(f"--out {args.out}: its directory does not exist")
-    result = rerun(args.evals, args.planner) if args.what == "rerun" else predict(args.eval, args.index)
+    if args.what == "rerun":
+        result = rerun(args.evals, args.planner)
+    else:
+        result = (predict if args.what == "predict" else carriage)(args.eval, args.index)
     with atomic_path(args.out, suffix=".json") as tmp:
         with open(tmp, "w") as f:
             json.dump(result, f, indent=1)

@@ -76,3 +76,46 @@ def test_cli_refuses_simulator_with_learned_estimator(capsys):
 
     assert main(["evaluate", "--boxes", "1", "--planner", "simulator", "--estimator", "learned"]) == 2
     assert "simulator" in capsys.readouterr().err
+
+
+def test_planar_start_keeps_the_robot_and_flattens_the_box(env_state):
+    """From the planar window of a moving box: the box flat at rest height at the observed pose with the
+    window's velocities; belts, carriages and warm start exactly the simulator's; one control step from
+    it lands near the exact step (the box's small tilt and bounce are all that was dropped)."""
+    env, dist, state = env_state
+    window = [np.asarray(state.s)]
+    st = state
+    for a in explore.exploration_actions(CFG)[20:22]:
+        st = env.step(st, a)
+        window.append(np.asarray(st.s))
+    window = np.stack(window).astype(np.float64)
+    phys = simp.planar_start(CFG, st, window)
+    m = st.model
+    idx = simp.model.ids(m)
+    nq, nv = m.nq, m.nv
+    q, v = phys[1 : 1 + nq], phys[1 + nq : 1 + nq + nv]
+    q0, v0 = st.physics[1 : 1 + nq], st.physics[1 + nq : 1 + nq + nv]
+    b, bv = idx.box_qpos, idx.box_dof
+    keep_q = np.setdiff1d(np.arange(nq), np.arange(b, b + 7))
+    keep_v = np.setdiff1d(np.arange(nv), np.arange(bv, bv + 6))
+    np.testing.assert_array_equal(q[keep_q], q0[keep_q])
+    np.testing.assert_array_equal(v[keep_v], v0[keep_v])
+    np.testing.assert_array_equal(phys[1 + nq + nv :], st.physics[1 + nq + nv :])  # act, warm start
+    np.testing.assert_allclose(q[b : b + 2], window[-1, 2:4])
+    assert q[b + 2] == CFG.box.half_size[2]
+    yaw = window[-1, 4]
+    np.testing.assert_allclose(q[b + 3 : b + 7], [np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)], atol=1e-12)
+    fd = (3 * window[-1] - 4 * window[-2] + window[-3]) / (2 * CFG.gripper.control_dt)
+    np.testing.assert_allclose(v[[bv, bv + 1, bv + 5]], fd[2:5], rtol=1e-6, atol=1e-9)
+    assert np.all(v[bv + 2 : bv + 5] == 0)  # no vertical or tilting motion
+    assert abs(q0[b + 2] - q[b + 2]) < 2e-3  # the simulator's box sinks < 2 mm into its belts
+    # One control step from either start: what the dropped state (tilt, bounce, the velocity within the
+    # step that finite differences smear) is worth here.
+    a = np.asarray(explore.exploration_actions(CFG)[22], np.float64)
+    exact, flat = env.step(st, a), env.step(st._replace(physics=phys), a)
+    np.testing.assert_allclose(flat.s[2:4], exact.s[2:4], atol=1e-3)
+    assert abs(flat.s[4] - exact.s[4]) < np.radians(0.1)
+    with pytest.raises(ValueError, match="window"):
+        simp.planar_start(CFG, st, window[:2])
+    with pytest.raises(ValueError, match="start"):
+        simp.SimulatorOptions(start="tilted")

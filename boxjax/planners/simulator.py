@@ -62,6 +62,7 @@ from boxjax.sim.native import STATE_SPEC
 # Per-step latency log for measuring a CLI run: when set, every planning call appends its wall ms.
 LATENCY_LOG_ENV = "BOXJAX_SIM_LATENCY_LOG"
 _FAILURES = (task.UNBALANCED, task.OFF_BELTS, task.TIPPED, task.INVALID_ACTION)
+STARTS = ("exact", "planar")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,11 +73,22 @@ class SimulatorOptions:
       shared with `planners.sampling`. Default 32 samples x 10 steps: 8000 substeps per control step.
     w_fail: cost of a rollout that ends the episode in a failure (see the module docstring).
     nthread: Python threads stepping the candidates (None: all cores).
+    start: where each planning step's rollouts start. "exact" (default): the simulator's full state, the
+      box's tilt, height and every velocity included. "planar": what a robot that sees the box's planar
+      pose knows -- the carriages and belts exactly (their encoders), the box flat at its resting height,
+      at the observed pose (the window's last state) and moving with the window's finite-difference
+      velocities (vx, vy, omega; no vertical or tilting motion): the box's rocking on its contact points,
+      which the planar observation does not show, is dropped (`planar_start`).
     """
 
     sampling: sp.SamplingOptions = sp.SamplingOptions(n_samples=32, horizon=10, gradient_steps=0)
     w_fail: float = 1.0e4
     nthread: int | None = None
+    start: str = "exact"
+
+    def __post_init__(self):
+        if self.start not in STARTS:
+            raise ValueError(f"SimulatorOptions.start={self.start!r}: expected one of {STARTS}")
 
 
 class SimulatorInfo(NamedTuple):
@@ -189,6 +201,35 @@ class Rollouts:
         return qpos, qvel
 
 
+def planar_start(cfg: Config, state: core.State, window, data: mujoco.MjData | None = None) -> np.ndarray:
+    """The mjSTATE_INTEGRATION state a planar observation gives: `state.physics` with the box's free joint
+    replaced by the box lying flat at its resting height (z = half the box's height, no tilt) at the
+    window's last planar pose, with the linear and yaw velocities of the window's second-order backward
+    differences (as the physics prior's `force_map.window_kinematics`) and no vertical or tilting
+    velocity. The belts and carriages (the robot's own joints) and the solver's warm start are kept.
+
+    window: (W >= 3, 5) planar states at control_dt spacing (P1, P2, x, y, yaw), the geometric centre's.
+    """
+    m = state.model
+    d = data if data is not None else mujoco.MjData(m)
+    mujoco.mj_setState(m, d, state.physics, STATE_SPEC)
+    w = np.asarray(window, np.float64)
+    if w.ndim != 2 or w.shape[0] < 3 or w.shape[1] != 5:
+        raise ValueError(f"window must be (W >= 3, 5) planar states, got shape {w.shape}")
+    dt = cfg.gripper.control_dt
+    v = (3.0 * w[-1] - 4.0 * w[-2] + w[-3]) / (2.0 * dt)
+    x, y, yaw = w[-1, geometry.X], w[-1, geometry.Y], w[-1, geometry.YAW]
+    idx = model.ids(m)
+    b, bv = idx.box_qpos, idx.box_dof
+    d.qpos[b : b + 7] = [x, y, cfg.box.half_size[2], np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+    # Free joint: the body origin's linear velocity in world axes, the angular velocity in body axes
+    # (the box is flat, so its z axis is the world's).
+    d.qvel[bv : bv + 6] = [v[geometry.X], v[geometry.Y], 0.0, 0.0, 0.0, v[geometry.YAW]]
+    out = np.empty(mujoco.mj_stateSize(m, STATE_SPEC))
+    mujoco.mj_getState(m, d, out, STATE_SPEC)
+    return out
+
+
 def make(cfg: Config, options: SimulatorOptions | None = None) -> planning.Planner:
     """The simulator reference behind the planner interface (`planning.Planner`, privileged): the plan
     state is the nominal sequence (H, 4); `optimize(key, model, obs, nominal)` needs `obs.sim`, a
@@ -201,6 +242,7 @@ def make(cfg: Config, options: SimulatorOptions | None = None) -> planning.Plann
     score = jax.jit(partial(_score, cfg=cfg, idx=idx, o=o, w_fail=opts.w_fail))
 
     rollouts = Rollouts(cfg, N, H, opts.nthread)
+    scratch = mujoco.MjData(model.template(cfg))  # every box model has these sizes
 
     def init(obs: planning.Observation):
         return sp.initial_nominal(cfg, o, obs.belt_speed)
@@ -212,7 +254,10 @@ def make(cfg: Config, options: SimulatorOptions | None = None) -> planning.Plann
         t0 = time.perf_counter()
         seqs = np.asarray(sample(key, nominal), np.float64)  # float32 values, as the env receives them
         t1 = time.perf_counter()
-        qpos, qvel = rollouts(sim, seqs)
+        start = sim
+        if opts.start == "planar":
+            start = sim._replace(physics=planar_start(cfg, sim, obs.window, scratch))
+        qpos, qvel = rollouts(start, seqs)
         sim_ms = 1e3 * (time.perf_counter() - t1)
         cost, states, reason = score(
             prior_model,
