@@ -20,7 +20,9 @@ removed (dp = 0): how much of the yaw each says the carriage moves made, and whe
 
 `rerun --planner simulator-planar` plans with the simulator started from what a planar observation shows
 (`SimulatorOptions(start="planar")`: the box flat, at the observed pose and finite-difference velocities)
-instead of the exact state.
+instead of the exact state; `simulator-belief` also simulates the believed box instead of the true one
+(`model="belief"`), under the evaluation's own estimator (the learned H's estimate on learned runs).
+`rerun` uses the evaluation's estimator (`simulator` and `simulator-planar`: oracle evaluations only).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from boxjax.config import DEFAULT
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import env_for, run_episode
 from boxjax.control.models import planning_model
+from boxjax.estimator.belief import learned_estimator
 from boxjax.experiments import evaluation as ev
 from boxjax.fileio import atomic_path
 from boxjax.planners.sampling import SamplingOptions
@@ -50,6 +53,7 @@ from boxjax.prior import predictor as prior
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import turn_evidence  # noqa: E402  (the k-step predictions along a recorded turn)
 
+PRIVILEGED = ("simulator", "simulator-planar")  # planners that simulate the true box: oracle evaluations only
 K = 10  # control steps of each yaw prediction
 EVERY = 5  # control steps between predictions
 
@@ -60,6 +64,9 @@ def _controller(summary: dict, planner: str) -> ControllerConfig:
         return dataclasses.replace(base, planner="simulator")
     if planner == "simulator-planar":
         return dataclasses.replace(base, planner="simulator", simulator=SimulatorOptions(start="planar"))
+    if planner == "simulator-belief":
+        sim = SimulatorOptions(start="planar", model="belief")
+        return dataclasses.replace(base, planner="simulator", simulator=sim)
     wide = dataclasses.replace(base.sampling or SamplingOptions(), n_samples=1024, gradient_steps=0)
     return dataclasses.replace(base, sampling=wide)
 
@@ -69,6 +76,9 @@ def rerun(dirs: list[str], planner: str) -> dict:
     for d in dirs:
         boxes, summary = ev.load_boxes(d)
         ctrl = _controller(summary, planner)
+        est = learned_estimator(DEFAULT) if summary["estimator"] == "learned" else "oracle"
+        if est != "oracle" and planner in PRIVILEGED:
+            raise SystemExit(f"--planner {planner} simulates the true box: {d} ran the learned estimator")
         rows = json.load(open(os.path.join(d, "evaluation.json")))["rows"]
         for r in rows:
             if r["hazardous"] or r["outcome"] in ("success", "aborted"):
@@ -76,7 +86,7 @@ def rerun(dirs: list[str], planner: str) -> dict:
             j = r["index"]
             t0 = time.time()
             key = jax.random.wrap_key_data(boxes.keys[j])
-            s = run_episode(DEFAULT, boxes.dist(j), key, estimator="oracle", ctrl=ctrl).summary
+            s = run_episode(DEFAULT, boxes.dist(j), key, estimator=est, ctrl=ctrl).summary
             out[f"{d}#{j}"] = {
                 "evaluation": r["outcome"],
                 planner: ev.outcome(s),
@@ -190,7 +200,7 @@ def main() -> None:
     sub = ap.add_subparsers(dest="what", required=True)
     r = sub.add_parser("rerun", help="the not-turned safe boxes with another planner")
     r.add_argument("--evals", nargs="+", required=True, help="evaluation directories (evaluate --out)")
-    r.add_argument("--planner", choices=("simulator", "simulator-planar", "wide"), default="simulator")
+    r.add_argument("--planner", choices=(*PRIVILEGED, "simulator-belief", "wide"), default="simulator")
     p = sub.add_parser("predict", help="the prior's yaw predictions along the stalled and the reference turn")
     c = sub.add_parser(
         "carriage", help="the yaw the carriage moves make along both turns: simulator and prior"

@@ -119,3 +119,17 @@ def test_planar_start_keeps_the_robot_and_flattens_the_box(env_state):
         simp.planar_start(CFG, st, window[:2])
     with pytest.raises(ValueError, match="start"):
         simp.SimulatorOptions(start="tilted")
+
+
+def test_belief_model_simulates_the_believed_box():
+    """model="belief": the rollouts' box has the belief's mass and centre of mass, not the truth's."""
+    belief = massdist.named("A", CFG.box)
+    assert simp.belief_model(CFG, None, belief) is None
+    assert simp.belief_model(CFG, simp.SimulatorOptions(), belief) is None  # "truth": the env's own
+    m = simp.belief_model(CFG, simp.SimulatorOptions(start="planar", model="belief"), belief)
+    props = massdist.mass_properties(belief, CFG.box)
+    body = m.body("box")
+    np.testing.assert_allclose(body.mass[0], float(props.mass), rtol=1e-5)
+    np.testing.assert_allclose(body.ipos, np.asarray(props.com), atol=1e-6)
+    with pytest.raises(ValueError, match="model"):
+        simp.SimulatorOptions(model="estimate")

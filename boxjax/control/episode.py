@@ -28,6 +28,7 @@ from boxjax.control.monitor import crossing as monitor_crossing
 from boxjax.control.world import World
 from boxjax.estimator import com_error_cm, explore, moments
 from boxjax.estimator.belief import decide
+from boxjax.planners import simulator
 from boxjax.planners.registry import make_planner
 from boxjax.sim import make_env
 from boxjax.sim.episode import EpisodeTrace
@@ -272,13 +273,17 @@ def run_episode(
             model = planning_model(cfg, ctrl, belief, force_map, est)
         mpc = make_planner(cfg, for_delay(cfg, ctrl, world.delay))  # slower when the loop is late
         window = first_window(exploration["s"])
+        # The simulator reference simulates the believed box when asked to, else the env's own.
+        sim_box = simulator.belief_model(cfg, ctrl.simulator, belief) if mpc.privileged else None
 
         def observe(state):
             w = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
             b = np.asarray(seen[-1][1], np.float32)
             if world.delay:  # predicted over the loop's delays to when the next action applies
                 w, b = _compensate(model, w, b, in_flight(sent, world.delay))
-            sim = state if mpc.privileged else None
+            sim = None
+            if mpc.privileged:
+                sim = state if sim_box is None else state._replace(model=sim_box)
             return planning.observation(w, b, state.target_yaw, sim)
 
         plan_state = mpc.init(observe(state))

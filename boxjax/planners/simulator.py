@@ -63,6 +63,7 @@ from boxjax.sim.native import STATE_SPEC
 LATENCY_LOG_ENV = "BOXJAX_SIM_LATENCY_LOG"
 _FAILURES = (task.UNBALANCED, task.OFF_BELTS, task.TIPPED, task.INVALID_ACTION)
 STARTS = ("exact", "planar")
+MODELS = ("truth", "belief")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,16 +80,23 @@ class SimulatorOptions:
       at the observed pose (the window's last state) and moving with the window's finite-difference
       velocities (vx, vy, omega; no vertical or tilting motion): the box's rocking on its contact points,
       which the planar observation does not show, is dropped (`planar_start`).
+    model: the box the rollouts simulate. "truth" (default): the true box (the env's own MjModel).
+      "belief": the box the estimator believes in (`belief_model`: H's voxel estimate under the learned
+      estimator), so with start="planar" nothing of the box's truth reaches the rollouts; the belts,
+      carriages and the solver's warm start are still read from the simulator.
     """
 
     sampling: sp.SamplingOptions = sp.SamplingOptions(n_samples=32, horizon=10, gradient_steps=0)
     w_fail: float = 1.0e4
     nthread: int | None = None
     start: str = "exact"
+    model: str = "truth"
 
     def __post_init__(self):
         if self.start not in STARTS:
             raise ValueError(f"SimulatorOptions.start={self.start!r}: expected one of {STARTS}")
+        if self.model not in MODELS:
+            raise ValueError(f"SimulatorOptions.model={self.model!r}: expected one of {MODELS}")
 
 
 class SimulatorInfo(NamedTuple):
@@ -199,6 +207,14 @@ class Rollouts:
             p = np.asarray(p)
             self._run(partial(advance, k=k))
         return qpos, qvel
+
+
+def belief_model(cfg: Config, options: SimulatorOptions | None, belief) -> mujoco.MjModel | None:
+    """The MjModel the rollouts simulate when `options.model == "belief"`: the believed box
+    (`massdist.MassDistribution`) in the gripper (`sim.model.box_model`); None: the env's own (truth)."""
+    if options is None or options.model == "truth":
+        return None
+    return model.box_model(cfg, belief)
 
 
 def planar_start(cfg: Config, state: core.State, window, data: mujoco.MjData | None = None) -> np.ndarray:
