@@ -5,11 +5,10 @@ compare the prior's yaw predictions with the simulator's along a stalled turn an
     python scripts/stalled_turns.py rerun --evals runs/items_s0 --planner simulator --out ref.json
     python scripts/stalled_turns.py rerun --evals runs/items_s0 --planner wide --out wide.json
     python scripts/stalled_turns.py predict --eval runs/items_s0 --index 8 14 40 --out predict.json
-
     python scripts/stalled_turns.py carriage --eval runs/items_s0 --index 8 14 40 --out carriage.json
 
 `rerun`: every safe box of the evaluations that was neither turned nor refused, run again closed loop with
-the same box and episode key (oracle), planning with the simulator itself (`--planner simulator`, the
+the same box and episode key, planning with the simulator itself (`--planner simulator`, the
 privileged reference: docs/results/random-boxes.md) or with 1024 rollouts and no gradient steps
 (`--planner wide`). `predict`: the evaluation's episode (replayed bit for bit) and the reference's episode of
 the same box; along each turn, every 5 control steps, the yaw change over the next 10 steps predicted by the
@@ -18,11 +17,11 @@ simulated one. `carriage`: along the same two turns, from every state of the tur
 steps, one control step in the simulator and in the prior with the action sent and with its carriage moves
 removed (dp = 0): how much of the yaw each says the carriage moves made, and whether they agree.
 
-`rerun --planner simulator-planar` plans with the simulator started from what a planar observation shows
-(`SimulatorOptions(start="planar")`: the box flat, at the observed pose and finite-difference velocities)
-instead of the exact state; `simulator-belief` also simulates the believed box instead of the true one
-(`model="belief"`), under the evaluation's own estimator (the learned H's estimate on learned runs).
-`rerun` uses the evaluation's estimator (`simulator` and `simulator-planar`: oracle evaluations only).
+`rerun --planner simulator --start planar` plans with the simulator started from what a planar observation
+shows (`SimulatorOptions(start="planar")`: the box flat, at the observed pose and finite-difference
+velocities) instead of the exact state; `--start flat` / `--start velocity` drop only one half of that;
+`--model belief` simulates the believed box instead of the true one. `rerun` runs the evaluation's own
+estimator (the learned H on learned evaluations); simulating the true box needs an oracle evaluation.
 """
 
 from __future__ import annotations
@@ -47,38 +46,30 @@ from boxjax.estimator.belief import learned_estimator
 from boxjax.experiments import evaluation as ev
 from boxjax.fileio import atomic_path
 from boxjax.planners.sampling import SamplingOptions
-from boxjax.planners.simulator import SimulatorOptions
+from boxjax.planners.simulator import MODELS, STARTS, SimulatorOptions
 from boxjax.prior import predictor as prior
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import turn_evidence  # noqa: E402  (the k-step predictions along a recorded turn)
 
-PRIVILEGED = ("simulator", "simulator-planar")  # planners that simulate the true box: oracle evaluations only
 K = 10  # control steps of each yaw prediction
 EVERY = 5  # control steps between predictions
 
 
-def _controller(summary: dict, planner: str) -> ControllerConfig:
+def _controller(summary: dict, planner: str, sim: SimulatorOptions | None = None) -> ControllerConfig:
     base = ev.controller_from_settings(summary)
     if planner == "simulator":
-        return dataclasses.replace(base, planner="simulator")
-    if planner == "simulator-planar":
-        return dataclasses.replace(base, planner="simulator", simulator=SimulatorOptions(start="planar"))
-    if planner == "simulator-belief":
-        sim = SimulatorOptions(start="planar", model="belief")
         return dataclasses.replace(base, planner="simulator", simulator=sim)
     wide = dataclasses.replace(base.sampling or SamplingOptions(), n_samples=1024, gradient_steps=0)
     return dataclasses.replace(base, sampling=wide)
 
 
-def rerun(dirs: list[str], planner: str) -> dict:
+def rerun(dirs: list[str], planner: str, sim: SimulatorOptions | None = None) -> dict:
     out = {}
     for d in dirs:
         boxes, summary = ev.load_boxes(d)
-        ctrl = _controller(summary, planner)
+        ctrl = _controller(summary, planner, sim)
         est = learned_estimator(DEFAULT) if summary["estimator"] == "learned" else "oracle"
-        if est != "oracle" and planner in PRIVILEGED:
-            raise SystemExit(f"--planner {planner} simulates the true box: {d} ran the learned estimator")
         rows = json.load(open(os.path.join(d, "evaluation.json")))["rows"]
         for r in rows:
             if r["hazardous"] or r["outcome"] in ("success", "aborted"):
@@ -200,7 +191,9 @@ def main() -> None:
     sub = ap.add_subparsers(dest="what", required=True)
     r = sub.add_parser("rerun", help="the not-turned safe boxes with another planner")
     r.add_argument("--evals", nargs="+", required=True, help="evaluation directories (evaluate --out)")
-    r.add_argument("--planner", choices=(*PRIVILEGED, "simulator-belief", "wide"), default="simulator")
+    r.add_argument("--planner", choices=("simulator", "wide"), default="simulator")
+    r.add_argument("--start", choices=STARTS, help="the simulator's rollouts start from (default exact)")
+    r.add_argument("--model", choices=MODELS, help="the box the simulator simulates (default truth)")
     p = sub.add_parser("predict", help="the prior's yaw predictions along the stalled and the reference turn")
     c = sub.add_parser(
         "carriage", help="the yaw the carriage moves make along both turns: simulator and prior"
@@ -211,13 +204,28 @@ def main() -> None:
     for q in (r, p, c):
         q.add_argument("--out", required=True, help="JSON file")
     args = ap.parse_args()
+    sim = None
+    if args.what == "rerun" and (args.start or args.model):
+        if args.planner != "simulator":
+            ap.error(
+                "--start and --model set the simulator planner's rollouts: use them with --planner simulator"
+            )
+        sim = SimulatorOptions(start=args.start or "exact", model=args.model or "truth")
     for d in args.evals if args.what == "rerun" else [args.eval]:
         if not os.path.exists(os.path.join(d, "evaluation.json")):
             ap.error(f"{d} is not an evaluation output (no evaluation.json)")
+        truth = args.what != "rerun" or (
+            args.planner == "simulator" and (sim is None or sim.model == "truth")
+        )
+        estimator = json.load(open(os.path.join(d, "evaluation.json")))["summary"]["estimator"]
+        if truth and estimator != "oracle":
+            ap.error(
+                f"{d} ran the {estimator} estimator: the simulator simulating the true box is oracle-only"
+            )
     if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
         ap.error(f"--out {args.out}: its directory does not exist")
     if args.what == "rerun":
-        result = rerun(args.evals, args.planner)
+        result = rerun(args.evals, args.planner, sim)
     else:
         result = (predict if args.what == "predict" else carriage)(args.eval, args.index)
     with atomic_path(args.out, suffix=".json") as tmp:

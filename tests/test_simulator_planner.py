@@ -115,8 +115,25 @@ def test_planar_start_keeps_the_robot_and_flattens_the_box(env_state):
     exact, flat = env.step(st, a), env.step(st._replace(physics=phys), a)
     np.testing.assert_allclose(flat.s[2:4], exact.s[2:4], atol=1e-3)
     assert abs(flat.s[4] - exact.s[4]) < np.radians(0.1)
+
+    # The two halves apart: "flat" keeps the exact planar velocities, "velocity" the exact 3-D pose.
+    def vel_world(ph):  # the box's (linear, angular) velocity in world axes
+        q, v = ph[1 : 1 + nq], ph[1 + nq : 1 + nq + nv]
+        return np.concatenate([v[bv : bv + 3], simp._rotation(q[b + 3 : b + 7]) @ v[bv + 3 : bv + 6]])
+
+    exact_v = vel_world(st.physics)
+    flat = simp.planar_start(CFG, st, window, start="flat")
+    np.testing.assert_array_equal(flat[1 : 1 + b + 7], phys[1 : 1 + b + 7])  # the same flat pose
+    np.testing.assert_allclose(vel_world(flat)[[0, 1, 5]], exact_v[[0, 1, 5]], atol=1e-12)
+    assert np.all(vel_world(flat)[2:5] == 0)
+    vel = simp.planar_start(CFG, st, window, start="velocity")
+    np.testing.assert_array_equal(vel[1 : 1 + nq], st.physics[1 : 1 + nq])  # the exact pose, tilt included
+    np.testing.assert_allclose(vel_world(vel)[[0, 1, 5]], fd[2:5], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(vel_world(vel)[2:5], exact_v[2:5], atol=1e-12)  # tilting motion kept
     with pytest.raises(ValueError, match="window"):
         simp.planar_start(CFG, st, window[:2])
+    with pytest.raises(ValueError, match="start"):
+        simp.planar_start(CFG, st, window, start="exact")
     with pytest.raises(ValueError, match="start"):
         simp.SimulatorOptions(start="tilted")
 

@@ -62,7 +62,7 @@ from boxjax.sim.native import STATE_SPEC
 # Per-step latency log for measuring a CLI run: when set, every planning call appends its wall ms.
 LATENCY_LOG_ENV = "BOXJAX_SIM_LATENCY_LOG"
 _FAILURES = (task.UNBALANCED, task.OFF_BELTS, task.TIPPED, task.INVALID_ACTION)
-STARTS = ("exact", "planar")
+STARTS = ("exact", "planar", "flat", "velocity")
 MODELS = ("truth", "belief")
 
 
@@ -79,7 +79,8 @@ class SimulatorOptions:
       pose knows -- the carriages and belts exactly (their encoders), the box flat at its resting height,
       at the observed pose (the window's last state) and moving with the window's finite-difference
       velocities (vx, vy, omega; no vertical or tilting motion): the box's rocking on its contact points,
-      which the planar observation does not show, is dropped (`planar_start`).
+      which the planar observation does not show, is dropped (`planar_start`). "flat" and "velocity":
+      its two halves apart (only the box flattened; only the planar velocities from finite differences).
     model: the box the rollouts simulate. "truth" (default): the true box (the env's own MjModel).
       "belief": the box the estimator believes in (`belief_model`: H's voxel estimate under the learned
       estimator), so with start="planar" nothing of the box's truth reaches the rollouts; the belts,
@@ -217,30 +218,50 @@ def belief_model(cfg: Config, options: SimulatorOptions | None, belief) -> mujoc
     return model.box_model(cfg, belief)
 
 
-def planar_start(cfg: Config, state: core.State, window, data: mujoco.MjData | None = None) -> np.ndarray:
-    """The mjSTATE_INTEGRATION state a planar observation gives: `state.physics` with the box's free joint
-    replaced by the box lying flat at its resting height (z = half the box's height, no tilt) at the
-    window's last planar pose, with the linear and yaw velocities of the window's second-order backward
-    differences (as the physics prior's `force_map.window_kinematics`) and no vertical or tilting
-    velocity. The belts and carriages (the robot's own joints) and the solver's warm start are kept.
+def _rotation(quat) -> np.ndarray:
+    """(3, 3) the rotation matrix of a unit quaternion (w, x, y, z)."""
+    out = np.empty(9)
+    mujoco.mju_quat2Mat(out, np.asarray(quat, np.float64))
+    return out.reshape(3, 3)
+
+
+def planar_start(
+    cfg: Config, state: core.State, window, data: mujoco.MjData | None = None, start: str = "planar"
+) -> np.ndarray:
+    """The mjSTATE_INTEGRATION state a planar observation gives (`start="planar"`): `state.physics` with
+    the box's free joint replaced by the box lying flat at its resting height (z = half the box's height,
+    no tilt) at the window's last planar pose, with the linear and yaw velocities of the window's
+    second-order backward differences (as the physics prior's `force_map.window_kinematics`) and no
+    vertical or tilting velocity. The belts and carriages (the robot's own joints) and the solver's warm
+    start are kept. The two halves apart, to tell which one matters: `start="flat"` only flattens the box
+    (planar velocities exact), `start="velocity"` only replaces the planar velocities by the finite
+    differences (the box's height, tilt and tilting motion exact).
 
     window: (W >= 3, 5) planar states at control_dt spacing (P1, P2, x, y, yaw), the geometric centre's.
     """
+    if start not in STARTS[1:]:
+        raise ValueError(f"start={start!r}: expected one of {STARTS[1:]}")
     m = state.model
     d = data if data is not None else mujoco.MjData(m)
     mujoco.mj_setState(m, d, state.physics, STATE_SPEC)
     w = np.asarray(window, np.float64)
     if w.ndim != 2 or w.shape[0] < 3 or w.shape[1] != 5:
         raise ValueError(f"window must be (W >= 3, 5) planar states, got shape {w.shape}")
-    dt = cfg.gripper.control_dt
-    v = (3.0 * w[-1] - 4.0 * w[-2] + w[-3]) / (2.0 * dt)
-    x, y, yaw = w[-1, geometry.X], w[-1, geometry.Y], w[-1, geometry.YAW]
     idx = model.ids(m)
     b, bv = idx.box_qpos, idx.box_dof
-    d.qpos[b : b + 7] = [x, y, cfg.box.half_size[2], np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
-    # Free joint: the body origin's linear velocity in world axes, the angular velocity in body axes
-    # (the box is flat, so its z axis is the world's).
-    d.qvel[bv : bv + 6] = [v[geometry.X], v[geometry.Y], 0.0, 0.0, 0.0, v[geometry.YAW]]
+    # Free joint: the body origin's linear velocity in world axes, the angular velocity in body axes.
+    rot = _rotation(d.qpos[b + 3 : b + 7])  # body -> world
+    vel = np.concatenate([d.qvel[bv : bv + 3], rot @ d.qvel[bv + 3 : bv + 6]])  # world axes
+    if start in ("planar", "velocity"):
+        fd = (3.0 * w[-1] - 4.0 * w[-2] + w[-3]) / (2.0 * cfg.gripper.control_dt)
+        vel[[0, 1, 5]] = fd[[geometry.X, geometry.Y, geometry.YAW]]
+    if start in ("planar", "flat"):
+        x, y, yaw = w[-1, geometry.X], w[-1, geometry.Y], w[-1, geometry.YAW]
+        d.qpos[b : b + 7] = [x, y, cfg.box.half_size[2], np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+        vel[[2, 3, 4]] = 0.0  # no vertical or tilting motion
+        rot = _rotation(d.qpos[b + 3 : b + 7])
+    d.qvel[bv : bv + 3] = vel[:3]
+    d.qvel[bv + 3 : bv + 6] = rot.T @ vel[3:]
     out = np.empty(mujoco.mj_stateSize(m, STATE_SPEC))
     mujoco.mj_getState(m, d, out, STATE_SPEC)
     return out
@@ -271,8 +292,8 @@ def make(cfg: Config, options: SimulatorOptions | None = None) -> planning.Plann
         seqs = np.asarray(sample(key, nominal), np.float64)  # float32 values, as the env receives them
         t1 = time.perf_counter()
         start = sim
-        if opts.start == "planar":
-            start = sim._replace(physics=planar_start(cfg, sim, obs.window, scratch))
+        if opts.start != "exact":
+            start = sim._replace(physics=planar_start(cfg, sim, obs.window, scratch, opts.start))
         qpos, qvel = rollouts(start, seqs)
         sim_ms = 1e3 * (time.perf_counter() - t1)
         cost, states, reason = score(
