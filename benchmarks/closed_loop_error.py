@@ -12,10 +12,19 @@ follows a net carriage move over the horizon, true against predicted (the planne
 
     python benchmarks/closed_loop_error.py [--boxes 64] [--seed 7] [--horizon 10] [--stride 3] \
         [--param carriage_omega=30,100 --param slip_eps=0.002,0.02] [--traces FILE.npz] [--out FILE.json] \
-        [--residual FILE.npz] [--policy-residual FILE.npz]
+        [--residual FILE.npz] [--policy-residual FILE.npz] [--safe-family F] [--simulator planar,...]
 
 `--param NAME=V1,V2,...` (repeatable) spans a grid over `prior.PriorParams` fields (all combinations);
 `--traces` keeps the episodes (written when absent, read when present). Prints one JSON line.
+
+`--simulator planar[,flat,velocity,exact]`: the simulator itself as the predictor of the same cases, with
+the TRUE box, started from what the planar observation shows (`planners.simulator.planar_start`: the box
+flat at the observed pose with finite-difference velocities; the belts and carriages exact), or from one
+half of that (`flat`, `velocity`), or from the exact state (`exact`: error 0, a check). Nothing that
+predicts from the planar observation has a better model than this one; what it still gets wrong is
+what the planar observation does not determine (slip and contact switching amplify the box's small
+tilt and the velocity within a step). Each episode is re-simulated from its key and actions (checked
+bit for bit against the traces), so `--traces` must come from the same `--boxes` and `--seed`.
 """
 
 from __future__ import annotations
@@ -41,21 +50,21 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 from _util import emit_to, machine  # noqa: E402
 
-from boxjax import geometry, massdist, prior
+from boxjax import geometry, massdist, planning, prior
 from boxjax.config import DEFAULT  # noqa: E402
 from boxjax.experiments import evaluation as experiments
 from boxjax.fileio import atomic_path  # noqa: E402
 from boxjax.prior import residual
 
 
-def collect(n_boxes: int, seed: int, policy_residual: str | None = None) -> dict:
+def collect(n_boxes: int, seed: int, policy_residual: str | None = None, family: str = "gaussian") -> dict:
     """Closed-loop oracle episodes of the default controller (planning with the learned residual
     `policy_residual` when given): per box s (T+1, 5), belt_speed, actions, masses and the exploration
     length, flattened into one npz-able dict."""
     from boxjax.control.config import ControllerConfig
 
     cfg = DEFAULT
-    boxes = experiments.make_boxes(cfg, n_boxes, 0, seed)
+    boxes = experiments.make_boxes(cfg, n_boxes, 0, seed, safe_family=family)
     truths = [boxes.dist(j) for j in range(n_boxes)]
     ctrl = ControllerConfig(residual=policy_residual)
     res = batch.run_episodes(cfg, truths, list(boxes.keys), estimator="oracle", ctrl=ctrl)
@@ -135,6 +144,48 @@ def errors(pred: np.ndarray, truth: np.ndarray) -> dict:
     return out
 
 
+def simulator_predictions(
+    tr: dict, n_boxes: int, seed: int, horizon: int, stride: int, starts, family: str = "gaussian"
+) -> dict:
+    """{start: (C, H, 5)} the simulator's own predictions of the cases of `cases(tr, horizon, stride)`,
+    from each start (`planners.simulator.planar_start`, or "exact"), in the same order."""
+    from boxjax.planners import simulator as simp
+    from boxjax.sim import core
+    from boxjax.sim.native import NativeEnv
+
+    cfg = DEFAULT
+    boxes = experiments.make_boxes(cfg, n_boxes, 0, seed, safe_family=family)
+    env = NativeEnv(cfg)
+    roll = simp.Rollouts(cfg, 1, horizon, nthread=1)
+    w = planning.MIN_WINDOW
+    out = {k: [] for k in starts}
+    for j in range(n_boxes):
+        s_tr, a = tr[f"s_{j}"], np.asarray(tr[f"a_{j}"], np.float64)
+        st = env.reset(jax.random.wrap_key_data(boxes.keys[j]), boxes.dist(j))
+        states = [st]
+        for a_t in a:
+            st = env.step(st, a_t)
+            states.append(st)
+        if not np.array_equal(np.stack([np.asarray(x.s) for x in states]), s_tr):
+            raise SystemExit(
+                f"box {j}: the re-simulated episode differs from the traces (other boxes or seed?)"
+            )
+        idx = simp.model.ids(states[0].model)
+        for t in range(max(int(tr[f"nx_{j}"]), w - 1), len(a) - horizon + 1, stride):
+            for k in starts:
+                x = states[t]
+                if k != "exact":
+                    x = x._replace(physics=simp.planar_start(cfg, x, s_tr[t - w + 1 : t + 1], start=k))
+                qpos, _ = roll(x, a[None, t : t + horizon])
+                yaw, pred = float(x.s[geometry.YAW]), []
+                for q in qpos[0]:
+                    p = np.asarray(core.planar_state(idx, q, yaw))
+                    yaw = float(p[geometry.YAW])
+                    pred.append(p)
+                out[k].append(np.stack(pred))
+    return {k: np.asarray(v, np.float32) for k, v in out.items()}
+
+
 def _grid(items: list[str]) -> list[dict]:
     fields = {f.name: f for f in dataclasses.fields(prior.PriorParams)}
     axes = []
@@ -160,14 +211,27 @@ def main(argv=None) -> dict:
         "--residual", help="also the default prior with this learned residual (boxjax.prior.residual)"
     )
     ap.add_argument("--policy-residual", help="the episodes' controller plans with this residual")
+    ap.add_argument(
+        "--safe-family", default="gaussian", choices=massdist.FAMILIES, help="the boxes' family (evaluate's)"
+    )
+    ap.add_argument(
+        "--simulator",
+        help="comma-separated starts (planar, flat, velocity, exact): the simulator itself as the predictor",
+    )
     args = ap.parse_args(argv)
+    starts = [k for k in (args.simulator or "").split(",") if k]
+    from boxjax.planners.simulator import STARTS
+
+    bad = [k for k in starts if k not in STARTS]
+    if bad:
+        ap.error(f"--simulator {','.join(bad)}: expected some of {','.join(STARTS)}")
     default = prior.PriorParams()
     grid = [{}] + [g for g in _grid(args.param) if dataclasses.replace(default, **g) != default]
     t0 = time.perf_counter()
     if args.traces and os.path.exists(args.traces):
         tr = dict(np.load(args.traces))
     else:
-        tr = collect(args.boxes, args.seed, args.policy_residual)
+        tr = collect(args.boxes, args.seed, args.policy_residual, args.safe_family)
         if args.traces:
             with atomic_path(args.traces, suffix=".npz") as tmp:
                 np.savez(tmp, **tr)
@@ -178,6 +242,7 @@ def main(argv=None) -> dict:
         "boxes": int(len(tr["success"])),
         "turned": int(np.sum(tr["success"])),
         "seed": args.seed,
+        "safe_family": args.safe_family,
         "cases": int(len(c["window"])),
         "episodes_s": t_sim,
         "constant_velocity": errors(constant_velocity(c), c["truth"]),
@@ -207,6 +272,14 @@ def main(argv=None) -> dict:
             "s": time.perf_counter() - t1,
         }
         print(json.dumps(out["residual"]), file=sys.stderr, flush=True)
+    if starts:
+        t1 = time.perf_counter()
+        preds = simulator_predictions(
+            tr, out["boxes"], args.seed, args.horizon, args.stride, starts, args.safe_family
+        )
+        out["simulator"] = {k: errors(p, c["truth"]) for k, p in preds.items()}
+        out["simulator"]["s"] = time.perf_counter() - t1
+        print(json.dumps(out["simulator"]), file=sys.stderr, flush=True)
     out["wall_s"] = time.perf_counter() - t0
     emit_to(out, args.out)
     return out

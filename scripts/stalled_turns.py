@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from boxjax import geometry
 from boxjax.config import DEFAULT
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import env_for, run_episode
@@ -45,6 +46,7 @@ from boxjax.control.models import planning_model
 from boxjax.estimator.belief import learned_estimator
 from boxjax.experiments import evaluation as ev
 from boxjax.fileio import atomic_path
+from boxjax.planners import simulator as simp
 from boxjax.planners.sampling import SamplingOptions
 from boxjax.planners.simulator import MODELS, STARTS, SimulatorOptions
 from boxjax.prior import predictor as prior
@@ -125,24 +127,44 @@ def predict(d: str, indices: list[int]) -> dict:
     return out
 
 
-def carriage_effects(res, key, steps: int = 200) -> dict:
+def carriage_effects(res, key, steps: int = 200, every: int = 5) -> dict:
     """From each state of the turn (its first `steps` control steps), the yaw change of one control step
     with the action sent and with its carriage moves zeroed, in the simulator (the episode's states
-    re-simulated from its key and actions) and in the prior on the true mass distribution (degrees)."""
+    re-simulated from its key and actions) and in the prior on the true mass distribution (degrees).
+    Beside it, what the planar pose does not show: the box's tilt and sink along the turn, and, every
+    `every` steps, how far 10 steps of the actions sent from the planar, flat and velocity starts
+    (`planners.simulator.planar_start`) end from the exact state's (median |yaw difference|, degrees)."""
     env = env_for(DEFAULT, "native")
     st = env.reset(key, res.truth)
     acts = np.asarray(res.trace.actions, np.float64)
     n0 = res.summary["exploration_steps"]
     model = planning_model(DEFAULT, ControllerConfig(), res.truth)
     pred = jax.jit(jax.vmap(lambda w, b, a: prior.predict(model, w, b, a), in_axes=(None, None, 0)))
-    seen, rows, drift = [np.asarray(st.s)], [], 0.0
+    idx = simp.model.ids(st.model)
+    b, nq = idx.box_qpos, st.model.nq
+    roll = simp.Rollouts(DEFAULT, 1, K, nthread=1)
+    seen, rows, drift, tilt, sink = [np.asarray(st.s)], [], 0.0, [], []
+    div = {k: [] for k in simp.STARTS[1:]}
     for t, a in enumerate(acts[: n0 + steps]):
         if t >= n0 + turn_evidence.W - 1:
             alt = np.stack([a, [a[0], a[1], 0.0, 0.0]])
             sim = [float(env.step(st, x).s[4] - st.s[4]) for x in alt]
-            w = jnp.asarray(np.stack(seen[-turn_evidence.W :]), jnp.float32)
-            p = np.asarray(pred(w, jnp.asarray(st.belt_speed, jnp.float32), jnp.asarray(alt, jnp.float32)))
+            w = np.stack(seen[-turn_evidence.W :])
+            p = np.asarray(pred(jnp.asarray(w, jnp.float32), jnp.asarray(st.belt_speed, jnp.float32), alt))
             rows.append([*sim, *(p[:, 4] - float(st.s[4]))])
+            q = st.physics[1 : 1 + nq]
+            tilt.append(float(geometry.tilt_from_quat(q[b + 3 : b + 7])))
+            sink.append(DEFAULT.box.half_size[2] - q[b + 2])
+            if (t - n0) % every == 0 and t + K <= len(acts):
+                seqs = acts[None, t : t + K]
+                end = {"exact": roll(st, seqs)[0][0, -1]}
+                for k in div:
+                    end[k] = roll(st._replace(physics=simp.planar_start(DEFAULT, st, w, start=k)), seqs)[0][
+                        0, -1
+                    ]
+                yaw = {k: float(geometry.yaw_from_quat(q_end[b + 3 : b + 7])) for k, q_end in end.items()}
+                for k in div:
+                    div[k].append(abs(float(geometry.wrap_angle(yaw[k] - yaw["exact"]))))
         st = env.step(st, a)
         seen.append(np.asarray(st.s))
         drift = max(drift, float(np.max(np.abs(seen[-1] - np.asarray(res.trace.s[t + 1])))))
@@ -161,6 +183,10 @@ def carriage_effects(res, key, steps: int = 200) -> dict:
         "carriage_effect_abs_sim": float(np.abs(sim_eff).mean()),
         "carriage_effect_abs_prior": float(np.abs(prior_eff).mean()),
         "carriage_effect_corr": float(np.corrcoef(sim_eff, prior_eff)[0, 1]),
+        "tilt_deg_median": float(np.degrees(np.median(tilt))),
+        "tilt_deg_max": float(np.degrees(np.max(tilt))),
+        "sink_mm_max": float(1e3 * np.max(sink)),
+        f"yaw_after_{K}_steps_vs_exact_deg": {k: float(np.degrees(np.median(v))) for k, v in div.items()},
     }
 
 
