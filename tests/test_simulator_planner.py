@@ -1,5 +1,7 @@
 """The simulator reference planner: its rollouts are NativeEnv.step, its actions are sane and keyed."""
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -150,3 +152,29 @@ def test_belief_model_simulates_the_believed_box():
     np.testing.assert_allclose(body.ipos, np.asarray(props.com), atol=1e-6)
     with pytest.raises(ValueError, match="model"):
         simp.SimulatorOptions(model="estimate")
+
+
+@pytest.mark.parametrize("box_model", ["truth", "belief"])
+def test_episode_hands_the_simulator_the_believed_box(box_model, monkeypatch):
+    """In a closed loop, model="belief" rolls out the estimator's box (here a fixed belief: uniform) and
+    "truth" the true one (box C); from the planar start the box's pose comes from the window either way."""
+    from boxjax.control.config import ControllerConfig
+    from boxjax.control.episode import run_episode
+
+    seen = []
+    call = simp.Rollouts.__call__
+
+    def spy(self, state, seqs):
+        seen.append(np.array(state.model.body("box").ipos))
+        return call(self, state, seqs)
+
+    monkeypatch.setattr(simp.Rollouts, "__call__", spy)
+    truth, belief = massdist.named("C", CFG.box), massdist.named("uniform", CFG.box)
+    opts = dataclasses.replace(SMALL, start="planar", model=box_model)
+    ctrl = ControllerConfig(planner="simulator", simulator=opts)
+    n_explore = len(explore.exploration_actions(CFG))
+    est = lambda exploration: {"distribution": belief, "hazardous": False}  # noqa: E731
+    res = run_episode(CFG, truth, jax.random.PRNGKey(0), estimator=est, ctrl=ctrl, max_steps=n_explore + 2)
+    assert len(seen) == 2 and res.summary["steps"] == n_explore + 2
+    want = belief if box_model == "belief" else truth
+    np.testing.assert_allclose(seen[-1], np.asarray(massdist.mass_properties(want, CFG.box).com), atol=1e-6)
