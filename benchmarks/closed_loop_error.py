@@ -20,7 +20,8 @@ follows a net carriage move over the horizon, true against predicted (the planne
 `--simulator planar[,flat,velocity,exact]`: the simulator itself as the predictor of the same cases, with
 the TRUE box, started from what the planar observation shows (`planners.simulator.planar_start`: the box
 flat at the observed pose with finite-difference velocities; the belts and carriages exact), or from one
-half of that (`flat`, `velocity`), or from the exact state (`exact`: error 0, a check). Nothing that
+half of that (`flat`, `velocity`), or from the exact state (`exact`: error 0, a check); and the default
+prior once more with its first step started from the exact velocity (`prior_exact_velocity`). Nothing that
 predicts from the planar observation has a better model than this one; what it still gets wrong is
 what the planar observation does not determine (slip and contact switching amplify the box's small
 tilt and the velocity within a step). Each episode is re-simulated from its key and actions (checked
@@ -85,18 +86,23 @@ def cases(tr: dict, horizon: int, stride: int) -> dict:
     return seg
 
 
-def predict(c: dict, params: dict, chunk: int = 2048, corrected=None) -> np.ndarray:
-    """The prior's predictions of every case; `corrected` = (net, ResidualConfig): with a learned residual."""
+def predict(c: dict, params: dict, chunk: int = 2048, corrected=None, velocity=None) -> np.ndarray:
+    """The prior's predictions of every case; `corrected` = (net, ResidualConfig): with a learned residual;
+    `velocity` (C, 3): each case's first step starts from this centre-of-mass velocity, not the window's."""
     cfg = DEFAULT
 
-    def one(masses, window, belt_speed, actions):
+    def one(masses, window, belt_speed, actions, *u0):
         model = prior.make_prior(masses, None, cfg.box, cfg.gripper, **params)
+        if u0:
+            return prior.rollout_sequence(model, window, belt_speed, actions, velocity=u0[0])
         if corrected is not None:
             model = residual.Residual(model, *corrected)
         return model.rollout_sequence(window, belt_speed, actions)
 
     fn = jax.jit(jax.vmap(one))
     names = ("masses", "window", "belt_speed", "actions")
+    if velocity is not None:
+        c, names = {**c, "velocity": velocity}, (*names, "velocity")
     return np.concatenate(
         [
             np.asarray(fn(*(jnp.asarray(c[k][i : i + chunk]) for k in names)))
@@ -148,7 +154,8 @@ def simulator_predictions(
     tr: dict, n_boxes: int, seed: int, horizon: int, stride: int, starts, family: str = "gaussian"
 ) -> dict:
     """{start: (C, H, 5)} the simulator's own predictions of the cases of `cases(tr, horizon, stride)`,
-    from each start (`planners.simulator.planar_start`, or "exact"), in the same order."""
+    from each start (`planners.simulator.planar_start`, or "exact"), in the same order; and under
+    "velocity_now" (C, 3) each case's exact centre-of-mass velocity (vx, vy, omega) at t."""
     from boxjax.planners import simulator as simp
     from boxjax.sim import core
     from boxjax.sim.native import NativeEnv
@@ -158,7 +165,7 @@ def simulator_predictions(
     env = NativeEnv(cfg)
     roll = simp.Rollouts(cfg, 1, horizon, nthread=1)
     w = planning.MIN_WINDOW
-    out = {k: [] for k in starts}
+    out: dict[str, list] = {k: [] for k in (*starts, "velocity_now")}
     for j in range(n_boxes):
         s_tr, a = tr[f"s_{j}"], np.asarray(tr[f"a_{j}"], np.float64)
         st = env.reset(jax.random.wrap_key_data(boxes.keys[j]), boxes.dist(j))
@@ -170,8 +177,16 @@ def simulator_predictions(
             raise SystemExit(
                 f"box {j}: the re-simulated episode differs from the traces (other boxes or seed?)"
             )
-        idx = simp.model.ids(states[0].model)
+        m = states[0].model
+        idx = simp.model.ids(m)
+        b, bv = idx.box_qpos, idx.box_dof
+        ipos = np.array(m.body("box").ipos)
         for t in range(max(int(tr[f"nx_{j}"]), w - 1), len(a) - horizon + 1, stride):
+            q, v = states[t].physics[1 : 1 + m.nq], states[t].physics[1 + m.nq : 1 + m.nq + m.nv]
+            rot = simp._rotation(q[b + 3 : b + 7])
+            omega = rot @ v[bv + 3 : bv + 6]  # world axes
+            v_com = v[bv : bv + 3] + np.cross(omega, rot @ ipos)
+            out["velocity_now"].append([v_com[0], v_com[1], omega[2]])
             for k in starts:
                 x = states[t]
                 if k != "exact":
@@ -277,8 +292,11 @@ def main(argv=None) -> dict:
         preds = simulator_predictions(
             tr, out["boxes"], args.seed, args.horizon, args.stride, starts, args.safe_family
         )
+        velocity = preds.pop("velocity_now")
         out["simulator"] = {k: errors(p, c["truth"]) for k, p in preds.items()}
         out["simulator"]["s"] = time.perf_counter() - t1
+        # The default prior again, its first step from the exact velocity instead of the window's.
+        out["prior_exact_velocity"] = errors(predict(c, {}, velocity=velocity), c["truth"])
         print(json.dumps(out["simulator"]), file=sys.stderr, flush=True)
     out["wall_s"] = time.perf_counter() - t0
     emit_to(out, args.out)

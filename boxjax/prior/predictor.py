@@ -455,7 +455,9 @@ def predict(model: PriorModel, window, belt_speed, action) -> jax.Array:
     return explain(model, window, belt_speed, action)[0]
 
 
-def rollout_sequence(model: PriorModel, window, belt_speed, actions, correction=None) -> jax.Array:
+def rollout_sequence(
+    model: PriorModel, window, belt_speed, actions, correction=None, velocity=None
+) -> jax.Array:
     """(H, 5) predicted states for the action sequence `actions` (H, 4). Each step feeds the predicted
     state back through the window, and the belt speeds follow the setpoints at <= belt_accel_limit
     (`planning.next_belt_speed`). The first step takes its velocities from the window's finite differences, as
@@ -471,13 +473,19 @@ def rollout_sequence(model: PriorModel, window, belt_speed, actions, correction=
     `correction(w, b, a, u, s, info) -> (s', velocity')` applied after every predicted step (window w,
     belt speed b, action a and start velocity u of the step, the prior's next state s and its `explain`
     info, whose "velocity" the next step starts from): how a learned residual (`boxjax.prior.residual`)
-    corrects the prior in place."""
+    corrects the prior in place.
+
+    velocity ("slip" with `carry_velocity` only): None, or the centre of mass's (vx, vy, omega) at t when
+    known better than the window's finite differences (conveyor axes, m/s and rad/s); the first step
+    starts from it."""
     window = jnp.asarray(window, jnp.float32)[-planning.MIN_WINDOW :]
     belt_speed = jnp.asarray(belt_speed, jnp.float32)
     actions = jnp.asarray(actions, jnp.float32)
     if model.params.variant != "slip" or not model.params.carry_velocity:
-        if correction is not None:
-            raise ValueError("a correction of the prior needs the 'slip' variant with carry_velocity")
+        if correction is not None or velocity is not None:
+            raise ValueError(
+                "a correction of the prior or a start velocity needs the 'slip' variant with carry_velocity"
+            )
 
         def step(carry, a):
             w, b = carry
@@ -497,7 +505,7 @@ def rollout_sequence(model: PriorModel, window, belt_speed, actions, correction=
         return (w, planning.next_belt_speed(model, b, a), u_next, info["friction"]), s
 
     kin = calibrate.window_kinematics(window, model.com[:2], model.gripper.control_dt)
-    u0 = jnp.concatenate([kin.v, kin.omega[None]])
+    u0 = jnp.concatenate([kin.v, kin.omega[None]]) if velocity is None else jnp.asarray(velocity, jnp.float32)
     _, states = jax.lax.scan(step_carried, (window, belt_speed, u0, model.mass * kin.a0), actions)
     return states
 
