@@ -6,6 +6,10 @@ planner study in the README: horizon, knots, MPPI / CEM, gradient refinement, po
     python scripts/planner_study.py --boxes 100 --seed 2 --sampling n_samples=32 \
         --mixture default --mixture carriage_omega=30,slip_eps=0.02      # a mixture of priors
 
+`--simulator KEY=VALUE` sets `planners.simulator.SimulatorOptions` fields (with `--controller
+planner=simulator`: e.g. `--simulator start=planar` plans with MuJoCo from what the planar observation
+shows); `--safe-family F` draws the safe boxes from family F (as `boxjax evaluate --safe-family`).
+
 `--mixture` (two or more) plans over a mixture of physics priors, one per setting
 (`ControllerConfig.prior_params` as a tuple, `planning.Mixture`), each candidate scored by its mean cost
 over them (`--sampling particle_risk=worst` for the worst). The episodes run batched with one host
@@ -21,11 +25,13 @@ import argparse
 import json
 import sys
 
+from boxjax import massdist
 from boxjax.config import DEFAULT
 from boxjax.control import batch
 from boxjax.control.config import ControllerConfig
 from boxjax.experiments import evaluation as experiments
 from boxjax.planners.sampling import SamplingOptions
+from boxjax.planners.simulator import SimulatorOptions
 from boxjax.prior.predictor import PriorParams
 
 
@@ -60,6 +66,8 @@ def main(argv=None) -> dict:
         metavar="KEY=VALUE[,KEY=VALUE...]|default",
         help="one prior setting of a mixture of priors (give two or more)",
     )
+    ap.add_argument("--simulator", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--safe-family", default="gaussian", choices=massdist.FAMILIES)
     ap.add_argument("--out", help="write evaluation.json and boxes.npz here (for `boxjax rotate --replay`)")
     args = ap.parse_args(argv)
     if args.prior and args.mixture:
@@ -75,6 +83,10 @@ def main(argv=None) -> dict:
                 PriorParams(variant=variant, **({} if m == "default" else _pairs(m.split(","), "mixture")))
                 for m in args.mixture
             )
+        if args.simulator:
+            if fields.get("planner") != "simulator":
+                raise ValueError("--simulator sets the simulator planner: add --controller planner=simulator")
+            fields["simulator"] = SimulatorOptions(**_pairs(args.simulator, "simulator"))
         ctrl = ControllerConfig(
             sampling=SamplingOptions(**_pairs(args.sampling, "sampling")), prior_params=prior_params, **fields
         )
@@ -83,7 +95,13 @@ def main(argv=None) -> dict:
         raise SystemExit(2) from e
     batch.use_host_devices()  # one host device per core, as `boxjax evaluate`
     ev = experiments.evaluate(
-        DEFAULT, args.boxes, args.hazardous, args.seed, estimator=args.estimator, ctrl=ctrl
+        DEFAULT,
+        args.boxes,
+        args.hazardous,
+        args.seed,
+        estimator=args.estimator,
+        ctrl=ctrl,
+        safe_family=args.safe_family,
     )
     if args.out:
         experiments.write_evaluation(ev, args.out, " ".join(["python", *sys.argv]))
