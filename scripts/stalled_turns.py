@@ -240,9 +240,8 @@ def main() -> None:
     for d in args.evals if args.what == "rerun" else [args.eval]:
         if not os.path.exists(os.path.join(d, "evaluation.json")):
             ap.error(f"{d} is not an evaluation output (no evaluation.json)")
-        truth = args.what != "rerun" or (
-            args.planner == "simulator" and (sim is None or sim.model == "truth")
-        )
+        # rerun runs the evaluation's own estimator; predict and carriage run the reference with the oracle
+        truth = args.what == "rerun" and args.planner == "simulator" and (sim is None or sim.model == "truth")
         estimator = json.load(open(os.path.join(d, "evaluation.json")))["summary"]["estimator"]
         if truth and estimator != "oracle":
             ap.error(

@@ -152,6 +152,8 @@ def test_belief_model_simulates_the_believed_box():
     np.testing.assert_allclose(body.ipos, np.asarray(props.com), atol=1e-6)
     with pytest.raises(ValueError, match="model"):
         simp.SimulatorOptions(model="estimate")
+    with pytest.raises(ValueError, match="no belief"):
+        simp.belief_model(CFG, simp.SimulatorOptions(model="belief"), None)
 
 
 @pytest.mark.parametrize("box_model", ["truth", "belief"])

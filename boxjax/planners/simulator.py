@@ -215,6 +215,11 @@ def belief_model(cfg: Config, options: SimulatorOptions | None, belief) -> mujoc
     (`massdist.MassDistribution`) in the gripper (`sim.model.box_model`); None: the env's own (truth)."""
     if options is None or options.model == "truth":
         return None
+    if belief is None:
+        raise ValueError(
+            "SimulatorOptions(model='belief') simulates the estimator's box, and this episode has no belief "
+            "(a planning model was given instead of an estimator)"
+        )
     return model.box_model(cfg, belief)
 
 
