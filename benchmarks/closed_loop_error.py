@@ -164,6 +164,16 @@ def simulator_predictions(
     boxes = experiments.make_boxes(cfg, n_boxes, 0, seed, safe_family=family)
     env = NativeEnv(cfg)
     roll = simp.Rollouts(cfg, 1, horizon, nthread=1)
+    idx = simp.model.ids(simp.model.template(cfg))  # every box model has these indices
+
+    @jax.jit
+    def planar(qpos, yaw0):  # (H, nq) -> (H, 5) planar states, the yaw continuous from yaw0
+        def step(yaw, q):
+            p = core.planar_state(idx, q, yaw)
+            return p[geometry.YAW], p
+
+        return jax.lax.scan(step, yaw0, qpos)[1]
+
     w = planning.MIN_WINDOW
     out: dict[str, list] = {k: [] for k in (*starts, "velocity_now")}
     for j in range(n_boxes):
@@ -178,26 +188,17 @@ def simulator_predictions(
                 f"box {j}: the re-simulated episode differs from the traces (other boxes or seed?)"
             )
         m = states[0].model
-        idx = simp.model.ids(m)
-        b, bv = idx.box_qpos, idx.box_dof
         ipos = np.array(m.body("box").ipos)
         for t in range(max(int(tr[f"nx_{j}"]), w - 1), len(a) - horizon + 1, stride):
-            q, v = states[t].physics[1 : 1 + m.nq], states[t].physics[1 + m.nq : 1 + m.nq + m.nv]
-            rot = simp._rotation(q[b + 3 : b + 7])
-            omega = rot @ v[bv + 3 : bv + 6]  # world axes
-            v_com = v[bv : bv + 3] + np.cross(omega, rot @ ipos)
-            out["velocity_now"].append([v_com[0], v_com[1], omega[2]])
+            vel, rot = simp.box_velocity(m, states[t].physics[1 : 1 + m.nq], states[t].physics[1 + m.nq :])
+            v_com = vel[:3] + np.cross(vel[3:], rot @ ipos)
+            out["velocity_now"].append([v_com[0], v_com[1], vel[5]])
             for k in starts:
                 x = states[t]
                 if k != "exact":
                     x = x._replace(physics=simp.planar_start(cfg, x, s_tr[t - w + 1 : t + 1], start=k))
                 qpos, _ = roll(x, a[None, t : t + horizon])
-                yaw, pred = float(x.s[geometry.YAW]), []
-                for q in qpos[0]:
-                    p = np.asarray(core.planar_state(idx, q, yaw))
-                    yaw = float(p[geometry.YAW])
-                    pred.append(p)
-                out[k].append(np.stack(pred))
+                out[k].append(np.asarray(planar(qpos[0], x.s[geometry.YAW])))
     return {k: np.asarray(v, np.float32) for k, v in out.items()}
 
 

@@ -127,6 +127,10 @@ def predict(d: str, indices: list[int]) -> dict:
     return out
 
 
+# One step of the prior for several actions; the model is an argument, so every episode reuses the program.
+_predict_actions = jax.jit(jax.vmap(prior.predict, in_axes=(None, None, None, 0)))
+
+
 def carriage_effects(res, key, steps: int = 200, every: int = 5) -> dict:
     """From each state of the turn (its first `steps` control steps), the yaw change of one control step
     with the action sent and with its carriage moves zeroed, in the simulator (the episode's states
@@ -139,7 +143,6 @@ def carriage_effects(res, key, steps: int = 200, every: int = 5) -> dict:
     acts = np.asarray(res.trace.actions, np.float64)
     n0 = res.summary["exploration_steps"]
     model = planning_model(DEFAULT, ControllerConfig(), res.truth)
-    pred = jax.jit(jax.vmap(lambda w, b, a: prior.predict(model, w, b, a), in_axes=(None, None, 0)))
     idx = simp.model.ids(st.model)
     b, nq = idx.box_qpos, st.model.nq
     roll = simp.Rollouts(DEFAULT, 1, K, nthread=1)
@@ -150,7 +153,11 @@ def carriage_effects(res, key, steps: int = 200, every: int = 5) -> dict:
             alt = np.stack([a, [a[0], a[1], 0.0, 0.0]])
             sim = [float(env.step(st, x).s[4] - st.s[4]) for x in alt]
             w = np.stack(seen[-turn_evidence.W :])
-            p = np.asarray(pred(jnp.asarray(w, jnp.float32), jnp.asarray(st.belt_speed, jnp.float32), alt))
+            p = np.asarray(
+                _predict_actions(
+                    model, jnp.asarray(w, jnp.float32), jnp.asarray(st.belt_speed, jnp.float32), alt
+                )
+            )
             rows.append([*sim, *(p[:, 4] - float(st.s[4]))])
             q = st.physics[1 : 1 + nq]
             tilt.append(float(geometry.tilt_from_quat(q[b + 3 : b + 7])))

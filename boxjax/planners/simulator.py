@@ -230,6 +230,16 @@ def _rotation(quat) -> np.ndarray:
     return out.reshape(3, 3)
 
 
+def box_velocity(m: mujoco.MjModel, qpos, qvel) -> tuple[np.ndarray, np.ndarray]:
+    """The box's free-joint velocity in world axes, (6,) = (linear velocity of the body origin, the
+    geometric centre; angular velocity), and its rotation matrix (3, 3), body -> world. MuJoCo keeps the
+    free joint's angular velocity in body axes."""
+    idx = model.ids(m)
+    b, bv = idx.box_qpos, idx.box_dof
+    rot = _rotation(qpos[b + 3 : b + 7])
+    return np.concatenate([qvel[bv : bv + 3], rot @ qvel[bv + 3 : bv + 6]]), rot
+
+
 def planar_start(
     cfg: Config, state: core.State, window, data: mujoco.MjData | None = None, start: str = "planar"
 ) -> np.ndarray:
@@ -254,9 +264,7 @@ def planar_start(
         raise ValueError(f"window must be (W >= 3, 5) planar states, got shape {w.shape}")
     idx = model.ids(m)
     b, bv = idx.box_qpos, idx.box_dof
-    # Free joint: the body origin's linear velocity in world axes, the angular velocity in body axes.
-    rot = _rotation(d.qpos[b + 3 : b + 7])  # body -> world
-    vel = np.concatenate([d.qvel[bv : bv + 3], rot @ d.qvel[bv + 3 : bv + 6]])  # world axes
+    vel, rot = box_velocity(m, d.qpos, d.qvel)  # world axes
     if start in ("planar", "velocity"):
         fd = (3.0 * w[-1] - 4.0 * w[-2] + w[-3]) / (2.0 * cfg.gripper.control_dt)
         vel[[0, 1, 5]] = fd[[geometry.X, geometry.Y, geometry.YAW]]
