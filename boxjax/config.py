@@ -37,6 +37,7 @@ class Hardware:
 
 
 HARDWARE = Hardware()
+MJX_BOX_CONTACTS = ("mjx", "polygon")  # GripperConfig.mjx_box_contacts
 
 
 @dataclass(frozen=True)
@@ -106,6 +107,10 @@ class GripperConfig:
     # default keeps MuJoCo's reference: physically right sliding, with the hopping documented.
     contact_cone: str = "pyramidal"  # "pyramidal" or "elliptic"
     friction_timeconst: float = 0.0  # s, solreffriction time constant; 0 = MuJoCo's default (solref)
+    # How the MJX backend finds the box-belt contacts (native MuJoCo always uses its own box-box collider):
+    # "mjx", MJX's collider (4 points per belt, a point repeated when fewer penetrate), or "polygon",
+    # every vertex of the touching faces' overlap (`boxjax.sim.mjx_contacts`; docs/results/simulation.md).
+    mjx_box_contacts: str = "mjx"  # "mjx" or "polygon": MJX's box-belt contacts (native uses its own)
     timestep: float = 0.002  # s, physics step
     control_dt: float = 0.05  # s, one control step (action held constant)
     gravity: float = 9.81  # m/s^2
@@ -146,6 +151,10 @@ class GripperConfig:
             raise ConfigError(f"contact_cone must be 'elliptic' or 'pyramidal', got {self.contact_cone!r}")
         if self.friction_timeconst < 0:
             raise ConfigError(f"friction_timeconst must be >= 0, got {self.friction_timeconst}")
+        if self.mjx_box_contacts not in MJX_BOX_CONTACTS:
+            raise ConfigError(
+                f"mjx_box_contacts must be one of {MJX_BOX_CONTACTS}, got {self.mjx_box_contacts!r}"
+            )
         if self.timestep <= 0 or self.control_dt < self.timestep:
             raise ConfigError(f"need 0 < timestep <= control_dt, got {self.timestep}, {self.control_dt}")
         ratio = self.control_dt / self.timestep

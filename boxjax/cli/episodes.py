@@ -46,6 +46,12 @@ def load_config(args):
         cfg = config_io.load(args.config)
     if getattr(args, "exploration", None) is not None:
         cfg = cfg.replace(task=dataclasses.replace(cfg.task, exploration=args.exploration))
+    contacts = cfg.gripper.mjx_box_contacts
+    if contacts != DEFAULT.gripper.mjx_box_contacts and getattr(args, "backend", "native") != "mjx":
+        raise ValueError(
+            f"gripper.mjx_box_contacts = {contacts!r} (--config) chooses how MJX finds the box's contacts; "
+            "it does nothing here (native MuJoCo uses its own collider): use it with --backend mjx"
+        )
     return cfg
 
 

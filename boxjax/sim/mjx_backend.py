@@ -21,6 +21,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from boxjax import massdist
 from boxjax.config import Config
 from boxjax.sim import core, model
+from boxjax.sim.mjx_contacts import box_contacts
 from boxjax.sim.native import _as_list, initial_qpos, recentre_belts
 
 
@@ -45,6 +46,7 @@ class MjxEnv:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg
+        self.contacts = cfg.gripper.mjx_box_contacts  # the box-belt collider (`boxjax.sim.mjx_contacts`)
         self._template = model.template(cfg)
         self.ids = model.ids(self._template)
         self.mx = _mjx().put_model(self._template, impl="jax")
@@ -79,7 +81,8 @@ class MjxEnv:
         m = self._model(params)
         qpos = initial_qpos(self.cfg, self._template, key).astype(jnp.float32)
         p0 = jnp.asarray(self.cfg.gripper.belt_y0, dtype=jnp.float32)
-        d = mjx.make_data(m)
+        with box_contacts(self.contacts):  # the contact arrays' size depends on the collider
+            d = mjx.make_data(m)
         ctrl = d.ctrl.at[model.CARRIAGE1_P].set(p0[0]).at[model.CARRIAGE2_P].set(p0[1])
         # A strongly typed time: a weakly typed one makes MJX compile the step twice
         # (docs/design.md#simulation-pitfalls).
@@ -106,7 +109,10 @@ class MjxEnv:
         act_speed = d.act[jnp.array([model.BELT1_V, model.BELT2_V])]
         ctrl, p_target, clipped, valid = core.command(self.cfg, action, act_speed, state.p_target)
         d = d.replace(ctrl=ctrl.astype(d.ctrl.dtype))
-        d, _ = jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=self.cfg.gripper.n_substeps)
+        with box_contacts(self.contacts):
+            d, _ = jax.lax.scan(
+                lambda d, _: (mjx.step(m, d), None), d, None, length=self.cfg.gripper.n_substeps
+            )
         d = d.replace(qpos=recentre_belts(self.ids, d.qpos))
         t = state.t + 1
         obs = core.observe(
