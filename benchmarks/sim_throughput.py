@@ -9,6 +9,7 @@ physics step of one world. Compile time and run time are reported separately; ru
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import sys
@@ -100,6 +101,13 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 512, 2048])
     ap.add_argument("--quick", action="store_true", help="fewer repeats and steps (for smoke tests)")
+    ap.add_argument(
+        "--polygon-batches",
+        type=int,
+        nargs="*",
+        default=[64],
+        help="MJX batches also timed with gripper.mjx_box_contacts = 'polygon' (none: skip)",
+    )
     args = ap.parse_args()
     cfg, dist = DEFAULT, massdist.named("A")
     reps = 2 if args.quick else 5
@@ -117,6 +125,12 @@ def main():
         n_control = 1 if args.quick else max(1, min(40, 2048 // max(b, 1)))
         _log(f"mjx batch {b}: {n_control} control steps per call")
         out["mjx"].append(mjx_batch(env, params, b, n_control, min(reps, 3)))
+    poly = MjxEnv(cfg.replace(gripper=dataclasses.replace(cfg.gripper, mjx_box_contacts="polygon")))
+    out["mjx_polygon_contacts"] = []
+    for b in args.polygon_batches:
+        n_control = 1 if args.quick else max(1, min(40, 2048 // max(b, 1)))
+        _log(f"mjx batch {b}, polygon contacts: {n_control} control steps per call")
+        out["mjx_polygon_contacts"].append(mjx_batch(poly, poly.box_params(dist), b, n_control, min(reps, 3)))
     best = max(r["world_steps_per_s"] for r in out["mjx"])
     out["mjx_best_world_steps_per_s"] = best
     out["ratio_mjx_best_over_native_1thread"] = best / out["native_steps_per_s_1thread"]

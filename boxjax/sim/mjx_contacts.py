@@ -41,14 +41,11 @@ _TOL = 1e-7
 
 
 def _sep_along_faces(pos_a, mat_a, size_a, pos_b, mat_b, size_b):
-    """(6,) separating distance of box b from box a along each of a's outward face normals (+x, -x, +y,
-    -y, +z, -z of a): b's lowest extent along the normal minus a's face offset. Negative: overlap."""
-    normals = jnp.concatenate([mat_a.T, -mat_a.T])  # rows: +x, +y, +z, -x, -y, -z
-    offsets = jnp.concatenate([size_a, size_a])
-    d = pos_b - pos_a
-    # b's support radius along n: sum_j size_b[j] |n . b_j|
-    radius = jnp.abs(normals @ mat_b) @ size_b
-    return normals @ d - radius - offsets, normals, offsets
+    """(6,) separating distance of box b from box a along each of a's outward face normals (+x, +y, +z,
+    -x, -y, -z of a's axes): b's lowest extent along the normal minus a's face offset. Negative: overlap."""
+    normals = jnp.concatenate([mat_a.T, -mat_a.T])
+    radius = jnp.abs(normals @ mat_b) @ size_b  # b's support radius along n: sum_j size_b[j] |n . b_j|
+    return normals @ (pos_b - pos_a) - radius - jnp.concatenate([size_a, size_a])
 
 
 def _face(mat, size, axis, sign):
@@ -129,8 +126,8 @@ def box_box_contacts(pos1, mat1, size1, pos2, mat2, size2):
     """dist (8,), pos (8, 3), frame (8, 3, 3) of two boxes (centres, rotation matrices, half sizes): the
     overlap polygon's vertices of the reference face and the face most opposed to it, the normal pointing
     from box 1 to box 2 (MuJoCo's convention). Slots without a contact have dist 1."""
-    s12, _, _ = _sep_along_faces(pos1, mat1, size1, pos2, mat2, size2)
-    s21, _, _ = _sep_along_faces(pos2, mat2, size2, pos1, mat1, size1)
+    s12 = _sep_along_faces(pos1, mat1, size1, pos2, mat2, size2)
+    s21 = _sep_along_faces(pos2, mat2, size2, pos1, mat1, size1)
     i1, i2 = jnp.argmax(s12), jnp.argmax(s21)
     # Nearly parallel faces separate by nearly the same distance either way; prefer box 1's face unless
     # box 2's separates clearly more (a tie flips nothing physical: the overlap polygon is the same).
@@ -170,7 +167,7 @@ _collide.ncon = NCON
 @contextlib.contextmanager
 def box_contacts(kind: str = "polygon"):
     """Within the block, MJX programs traced (and `mjx.make_data` called) collide box pairs with `kind`:
-    "polygon" (this module, native MuJoCo's contacts) or "mjx" (MJX's own collider, unchanged)."""
+    "polygon" (`box_box_contacts`, 8 slots per pair) or "mjx" (MJX's own collider, unchanged)."""
     if kind not in MJX_BOX_CONTACTS:
         raise ValueError(f"MJX box contacts must be one of {MJX_BOX_CONTACTS}, got {kind!r}")
     if kind == "mjx":
