@@ -38,11 +38,16 @@ SECTIONS: dict[str, type] = {"box": BoxConfig, "gripper": GripperConfig, "task":
 OTHER_SECTIONS = ("faults",)
 # The exploration data H learns from depends on the box, the whole gripper, the initial pose noise and the
 # exploration sequence (the dataset is gathered open loop, so the task's success and failure rules do not
-# enter it). Not MJX's contact finder: like the backend itself (recorded in H's report), it says how a
-# dataset was simulated, not what gripper it describes.
+# enter it).
+# The gripper a model (H, W, PETS) or dataset was made for: every GripperConfig field but MJX's contact
+# finder, which, like the backend itself (recorded in the reports), says how the data were simulated, not
+# what gripper they describe.
+GRIPPER_FIELDS = tuple(
+    f"gripper.{f.name}" for f in dataclasses.fields(GripperConfig) if f.name != "mjx_box_contacts"
+)
 ESTIMATOR_FIELDS = (
     *(f"box.{f.name}" for f in dataclasses.fields(BoxConfig)),
-    *(f"gripper.{f.name}" for f in dataclasses.fields(GripperConfig) if f.name != "mjx_box_contacts"),
+    *GRIPPER_FIELDS,
     "task.init_xy_noise",
     "task.init_yaw_noise",
     "task.exploration",

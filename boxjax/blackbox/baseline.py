@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from boxjax import geometry, mlp, planning
+from boxjax import config_io, geometry, mlp, planning
 from boxjax.config import DEFAULT, GripperConfig
 from boxjax.fileio import read_npz_with_meta, write_npz_with_meta
 
@@ -129,6 +129,18 @@ class BaselineConfig:
 
 def _gripper_dict(g: GripperConfig) -> dict:
     return json_safe(dataclasses.asdict(g))
+
+
+def gripper_mismatches(stored, gripper: GripperConfig) -> list[str]:
+    """The gripper fields (`config_io.GRIPPER_FIELDS`) where a checkpoint's recorded gripper differs from
+    `gripper`; a field the file does not record was added later and counts as its default. Not a dict at
+    all: ["gripper"]."""
+    if not isinstance(stored, dict):
+        return ["gripper"]
+    found = config_io.field_mismatches(
+        {"gripper": stored}, {"gripper": _gripper_dict(gripper)}, config_io.GRIPPER_FIELDS
+    )
+    return [name for name, _, _ in found]
 
 
 def json_safe(x):
@@ -511,8 +523,10 @@ def load(
         raise BaselineCheckpointError(
             f"{path}: W configuration differs from the expected one: {diff} (file, expected)"
         )
-    if meta.get("gripper") != _gripper_dict(gripper):
-        raise BaselineCheckpointError(f"{path}: W was trained for another gripper configuration")
+    if bad := gripper_mismatches(meta.get("gripper"), gripper):
+        raise BaselineCheckpointError(
+            f"{path}: W was trained for another gripper configuration (differs in {bad})"
+        )
     if meta.get("features") != list(FEATURE_NAMES):
         raise BaselineCheckpointError(f"{path}: W was trained on other input features {meta.get('features')}")
     sizes = config.sizes

@@ -455,8 +455,10 @@ def load(
         diff = baseline.config_diff(config, expected_config)
         raise PETSCheckpointError(f"{path}: PETS configuration differs from the expected one: {diff} "
                                   "(file, expected)")  # fmt: skip
-    if meta.get("gripper") != baseline._gripper_dict(gripper):
-        raise PETSCheckpointError(f"{path}: PETS was trained for another gripper configuration")
+    if bad := baseline.gripper_mismatches(meta.get("gripper"), gripper):
+        raise PETSCheckpointError(
+            f"{path}: PETS was trained for another gripper configuration (differs in {bad})"
+        )
     if meta.get("features") != list(baseline.FEATURE_NAMES):
         raise PETSCheckpointError(f"{path}: PETS was trained on other input features {meta.get('features')}")
     e, sizes = config.members, config.sizes

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from boxjax import geometry, massdist
+from boxjax import config_io, geometry, massdist
 from boxjax.config import DEFAULT, BoxConfig, Config, GripperConfig, TaskConfig
 from boxjax.estimator import explore
 from boxjax.fileio import read_npz_with_meta, write_npz_with_meta
@@ -205,6 +205,15 @@ def summary(data: dict) -> dict:
     }
 
 
+def _described(section, part: str) -> dict:
+    """A config section as the dataset check compares it: every field but MJX's contact finder (how the data
+    were simulated, like the backend, not what they describe: `config_io.GRIPPER_FIELDS`)."""
+    d = dataclasses.asdict(section)
+    return _canonical(
+        {k: v for k, v in d.items() if part != "gripper" or f"gripper.{k}" in config_io.GRIPPER_FIELDS}
+    )
+
+
 def _canonical(x):
     return json.loads(json.dumps(x))
 
@@ -255,8 +264,7 @@ def load(path: str | os.PathLike, expected_cfg: Config | None = DEFAULT) -> tupl
         raise DatasetError(f"{path}: unreadable config in the dataset metadata ({e})") from e
     if expected_cfg is not None:
         for part in ("box", "gripper"):
-            got = _canonical(dataclasses.asdict(getattr(cfg, part)))
-            want = _canonical(dataclasses.asdict(getattr(expected_cfg, part)))
+            got, want = (_described(getattr(c, part), part) for c in (cfg, expected_cfg))
             if got != want:
                 diff = sorted(k for k in want if got.get(k) != want[k])
                 got_d, want_d = {k: got.get(k) for k in diff}, {k: want[k] for k in diff}
