@@ -1,13 +1,14 @@
 """Box-belt contacts for MJX as the overlap polygon of the touching faces (`GripperConfig.mjx_box_contacts`).
 
 MJX's own box-box collider (`mujoco.mjx._src.collision_convex.box_box`, MuJoCo 4.0) keeps 4 of the overlap
-polygon's vertices and, when fewer than 4 penetrate, repeats one: a box resting on one edge of a belt gets
-3 contacts at one corner and 1 at the other, so that corner carries three times the load and the friction.
+polygon's vertices and, when fewer than 4 penetrate, repeats some: a box resting on a belt along a line
+gets its 4 contacts at the line's 2 ends (3 and 1 in a state of the exploration, where that end carries
+three times the load and the friction).
 At sub-micrometre penetration of nearly parallel faces (a hopping box landing) it can also report no
 contact where there is one. Native MuJoCo's collider drops vertices of its own: a box resting on a belt's
 edge along a line gets one contact instead of two as soon as the box pitches by 2e-5 rad
-(tests/test_mjx_contacts.py), and along the exploration of 3 random boxes it reported 3,607 of the
-polygon's 4,448 penetrating vertices (docs/results/simulation.md#backend-agreement).
+(tests/test_mjx_contacts.py), and along the exploration of 3 random boxes it reported 3,607 contacts, 3,606
+of them among the polygon's 4,447 penetrating vertices (docs/results/simulation.md#colliders).
 
 `box_box_contacts` below is the face-face clip with every vertex, for fixed shapes: the reference face is
 the face of either box with the largest separating distance along its normal; the incident face is the
