@@ -22,12 +22,14 @@ CFG = DEFAULT
 M = model.box_model(CFG, massdist.named("C", CFG.box))
 IDX = model.ids(M)
 B = IDX.box_qpos
-BOX_GEOM = 2  # geoms 0, 1: the belts
+BOX_GEOM = M.geom("box").id
+assert [M.geom(f"belt{i + 1}").id for i in (0, 1)] == [0, 1]  # `_ours(d, belt)` indexes the belts 0, 1
 
 
 def _quat(roll, pitch, yaw):
-    cr, sr, cp, sp, cy, sy = (np.cos(a / 2) for a in (roll, roll, pitch, pitch, yaw, yaw))
-    sr, sp, sy = np.sin(roll / 2), np.sin(pitch / 2), np.sin(yaw / 2)
+    """(w, x, y, z), MuJoCo's order, of R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    cr, cp, cy = np.cos(np.array([roll, pitch, yaw]) / 2)
+    sr, sp, sy = np.sin(np.array([roll, pitch, yaw]) / 2)
     return np.array(
         [
             cr * cp * cy + sr * sp * sy,
