@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import os
 import sys
 import time
@@ -61,6 +62,12 @@ def with_shift(cfg):
     return cfg.replace(task=dataclasses.replace(cfg.task, init_xy_noise=SHIFT))
 
 
+@functools.lru_cache(maxsize=4)
+def _command(cfg):
+    """`core.command` jitted once per config: (action, belt activations, targets) -> ctrl, targets."""
+    return jax.jit(lambda a, v, p: core.command(cfg, a, v, p)[:2])
+
+
 def native_final(cfg, dist, actions, key=None) -> np.ndarray:
     """(5,) planar state after `actions`, native MuJoCo, stepped as `NativeEnv` steps it; with `key`, the
     start moved by U(-SHIFT, SHIFT) in x and y (in float64, nothing else rounded)."""
@@ -74,9 +81,8 @@ def native_final(cfg, dist, actions, key=None) -> np.ndarray:
         )
     p = np.asarray(cfg.gripper.belt_y0)
     d.ctrl[model.CARRIAGE1_P], d.ctrl[model.CARRIAGE2_P] = p
-    command = jax.jit(lambda a, v, p: core.command(cfg, a, v, p)[:2])
     for a in actions:
-        ctrl, p = command(a, d.act[[model.BELT1_V, model.BELT2_V]], p)
+        ctrl, p = _command(cfg)(a, d.act[[model.BELT1_V, model.BELT2_V]], p)
         d.ctrl[:] = np.asarray(ctrl)
         p = np.asarray(p)
         for _ in range(cfg.gripper.n_substeps):
