@@ -133,13 +133,13 @@ def box_box_contacts(pos1, mat1, size1, pos2, mat2, size2):
     # Nearly parallel faces separate by nearly the same distance either way; prefer box 1's face unless
     # box 2's separates clearly more (a tie flips nothing physical: the overlap polygon is the same).
     use2 = s21[i2] > s12[i1] + 1e-6
-    axis1, sign1 = i1 % 3, jnp.where(i1 < 3, 1.0, -1.0)
-    axis2, sign2 = i2 % 3, jnp.where(i2 < 3, 1.0, -1.0)
-    d1, p1, n1 = _polygon_contacts(pos1, mat1, size1, axis1, sign1, pos2, mat2, size2)
-    d2, p2, n2 = _polygon_contacts(pos2, mat2, size2, axis2, sign2, pos1, mat1, size1)
-    dist = jnp.where(use2, d2, d1)
-    pos = jnp.where(use2, p2, p1)
-    normal = jnp.where(use2, -n2, n1)  # from box 1 towards box 2
+    i = jnp.where(use2, i2, i1)
+    pick = lambda a, b: jnp.where(use2, b, a)  # noqa: E731 (b when box 2 holds the reference face)
+    dist, pos, n = _polygon_contacts(
+        pick(pos1, pos2), pick(mat1, mat2), pick(size1, size2), i % 3, jnp.where(i < 3, 1.0, -1.0),
+        pick(pos2, pos1), pick(mat2, mat1), pick(size2, size1),
+    )  # fmt: skip
+    normal = jnp.where(use2, -n, n)  # from box 1 towards box 2
     frame = _frame(normal)
     return dist, pos, jnp.broadcast_to(frame, (NCON, 3, 3))
 
