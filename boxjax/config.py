@@ -37,7 +37,7 @@ class Hardware:
 
 
 HARDWARE = Hardware()
-MJX_BOX_CONTACTS = ("mjx", "polygon")  # GripperConfig.mjx_box_contacts
+MJX_BOX_CONTACTS = ("mjx", "polygon", "native")  # GripperConfig.mjx_box_contacts
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,9 @@ class GripperConfig:
     # How the MJX backend finds the box-belt contacts (native MuJoCo always uses its own box-box collider):
     # "mjx", MJX's collider (4 points per belt, a point repeated when fewer penetrate), or "polygon",
     # every vertex of the touching faces' overlap (`boxjax.sim.mjx_contacts`; docs/results/simulation.md).
-    mjx_box_contacts: str = "mjx"  # "mjx" or "polygon": MJX's box-belt contacts (native uses its own)
+    mjx_box_contacts: str = (
+        "mjx"  # "mjx", "polygon" or "native": MJX's box-belt collider (native uses its own)
+    )
     timestep: float = 0.002  # s, physics step
     control_dt: float = 0.05  # s, one control step (action held constant)
     gravity: float = 9.81  # m/s^2

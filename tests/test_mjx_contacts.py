@@ -15,8 +15,9 @@ import pytest
 from boxjax import massdist
 from boxjax.cli import main
 from boxjax.config import DEFAULT, ConfigError
-from boxjax.sim import model
-from boxjax.sim.mjx_contacts import NCON, box_box_contacts, box_contacts
+from boxjax.estimator import explore
+from boxjax.sim import core, model, native
+from boxjax.sim.mjx_contacts import NCON, box_box_contacts, box_contacts, native_box_box
 
 CFG = DEFAULT
 M = model.box_model(CFG, massdist.named("C", CFG.box))
@@ -170,6 +171,87 @@ def test_mjx_own_collider_repeats_a_point_of_a_line_contact():
     assert len(pts) == 4 and len(np.unique(pts, axis=0)) == 2  # four contacts at two points
 
 
+def _compare_native_rules(d, m, box_geom, belt_geom, kinds):
+    """native_box_box (float64) against native MuJoCo's contacts of one box-belt pair at state d: the same
+    number of contacts, positions to 1e-9 m, depths to 1e-12 m, normals to 1e-12; records the kind of the
+    winning axis (native's normal exactly along the belt's z, along a box axis, or an edge-cross axis)."""
+    nat = [c for c in d.contact[: d.ncon] if set(c.geom) == {box_geom, belt_geom}]
+    g1, g2 = nat[0].geom if nat else (box_geom, belt_geom)
+    mats = d.geom_xmat.reshape(-1, 3, 3)
+    dist, pos, frame = (
+        np.asarray(x)
+        for x in _NATIVE_RULES(
+            d.geom_xpos[g1], mats[g1], m.geom_size[g1], d.geom_xpos[g2], mats[g2], m.geom_size[g2]
+        )
+    )
+    on = dist <= 0
+    assert on.sum() == len(nat), (on.sum(), len(nat))
+    for c in nat:
+        j = int(np.argmin(np.linalg.norm(pos[on] - c.pos, axis=1)))
+        np.testing.assert_allclose(pos[on][j], c.pos, atol=1e-9)
+        assert abs(dist[on][j] - c.dist) < 1e-12
+        np.testing.assert_allclose(frame[0, 0], c.frame[:3], atol=1e-12)
+    if nat:
+        n = nat[0].frame[:3]
+        box_axis = np.max(np.abs(mats[box_geom].T @ n)) > 1 - 1e-12
+        kinds["belt face" if n[0] == n[1] == 0 else "box face" if box_axis else "edge"] += 1
+
+
+_NATIVE_RULES = jax.jit(native_box_box)
+
+
+@pytest.fixture
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def test_native_rules_are_native_mujocos_along_an_exploration(x64):
+    """`native_box_box` is native MuJoCo's collider (mjc_BoxBox), rule for rule: along a random box's
+    exploration, every box-belt pair's contacts agree to rounding, including the single edge-cross
+    contacts native reports for a box lying nearly flat on a belt (which the polygon does not)."""
+    m = model.box_model(CFG, massdist.sample(jax.random.PRNGKey(5), CFG.box))
+    idx, d = model.ids(m), mujoco.MjData(m)
+    d.qpos[:] = model.initial_qpos(CFG, m)
+    p = np.asarray(CFG.gripper.belt_y0)
+    d.ctrl[model.CARRIAGE1_P], d.ctrl[model.CARRIAGE2_P] = p
+    box_geom, belts = m.geom("box").id, (m.geom("belt1").id, m.geom("belt2").id)
+    kinds = {"belt face": 0, "box face": 0, "edge": 0}
+    for a in np.asarray(explore.exploration_actions(CFG)):
+        ctrl, p = core.command(CFG, a, d.act[[model.BELT1_V, model.BELT2_V]], p)[:2]
+        d.ctrl[:], p = np.asarray(ctrl), np.asarray(p)
+        for _ in range(CFG.gripper.n_substeps):
+            mujoco.mj_step(m, d)  # d.contact and d.geom_xpos: both of the state before the step
+            for belt in belts:
+                _compare_native_rules(d, m, box_geom, belt, kinds)
+        native.recentre_belts(idx, d.qpos)
+    assert min(kinds.values()) >= 20, kinds  # each of native's paths was compared
+
+
+def test_native_rules_at_random_orientations(x64):
+    """Adversarial: the box in 60 random orientations, its lowest corner pressed 1 mm below the belts' top
+    at random places over them (corners, edges and faces on the belts, edge-edge crossings)."""
+    rng = np.random.default_rng(0)
+    d = mujoco.MjData(M)
+    box_geom, belts = M.geom("box").id, (M.geom("belt1").id, M.geom("belt2").id)
+    corners = np.array(np.meshgrid(*([-1, 1],) * 3)).reshape(3, -1).T * CFG.box.half_size
+    kinds = {"belt face": 0, "box face": 0, "edge": 0}
+    for _ in range(60):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        mat = np.zeros(9)
+        mujoco.mju_quat2Mat(mat, q)
+        low = np.min(corners @ mat.reshape(3, 3).T[:, 2])
+        qpos = model.initial_qpos(CFG, M).copy()
+        qpos[B : B + 3] = [rng.uniform(-0.3, 0.3), rng.uniform(-0.15, 0.15), -low - 1e-3]
+        qpos[B + 3 : B + 7] = q
+        d.qpos[:] = qpos
+        mujoco.mj_forward(M, d)
+        for belt in belts:
+            _compare_native_rules(d, M, box_geom, belt, kinds)
+    assert kinds["edge"] >= 3 and kinds["belt face"] >= 3, kinds  # (box faces: along the exploration)
+
+
 def test_far_apart_boxes_have_no_contact():
     d = _pose(dz=0.05)
     for belt in (0, 1):
@@ -188,19 +270,20 @@ def test_the_config_chooses_the_collider_and_names_bad_values(capsys, tmp_path):
     assert "it does nothing here" in capsys.readouterr().err
 
 
-def test_mjx_with_polygon_contacts_accelerates_the_box_as_native_mujoco():
-    """One MJX forward (float32) at a state where both colliders agree: the box's accelerations within 1 %
+@pytest.mark.parametrize("kind", ["polygon", "native"])
+def test_mjx_with_these_contacts_accelerates_the_box_as_native_mujoco(kind):
+    """One MJX forward (float32) at a state where the colliders agree: the box's accelerations within 1 %
     of native MuJoCo's; the contact arrays hold 8 slots per belt."""
     from boxjax.sim.mjx_backend import _mjx  # noqa: PLC0415 (MJX is slow to import)
 
     mjx = _mjx()
     d = _pose(yaw=0.3, dz=-2e-4, dy=0.01)
     mx = mjx.put_model(M, impl="jax")
-    with box_contacts("polygon"):
+    with box_contacts(kind):
         dx = mjx.make_data(mx).replace(
             qpos=jnp.asarray(d.qpos, jnp.float32), ctrl=jnp.asarray(d.ctrl, jnp.float32)
         )
-        dx = jax.jit(mjx.forward)(mx, dx)  # traced inside the block: with the polygon
+        dx = jax.jit(mjx.forward)(mx, dx)  # traced inside the block: with `kind`
     assert dx._impl.contact.dist.shape == (2 * NCON,)
     box_dofs = slice(M.nv - 6, M.nv)
     np.testing.assert_allclose(np.asarray(dx.qacc)[box_dofs], d.qacc[box_dofs], rtol=1e-2, atol=1e-2)

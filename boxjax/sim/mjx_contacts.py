@@ -1,16 +1,26 @@
-"""Box-belt contacts for MJX as the overlap polygon of the touching faces (`GripperConfig.mjx_box_contacts`).
+"""Box-belt contacts for MJX (`GripperConfig.mjx_box_contacts`): native MuJoCo's rules, or the overlap
+polygon of the touching faces.
 
-MJX's own box-box collider (`mujoco.mjx._src.collision_convex.box_box`, MuJoCo 4.0) keeps 4 of the overlap
-polygon's vertices and, when fewer than 4 penetrate, repeats some: a box resting on a belt along a line
-gets its 4 contacts at the line's 2 ends (3 and 1 in a state of the exploration, where that end carries
-three times the load and the friction).
-At sub-micrometre penetration of nearly parallel faces (a hopping box landing) it can also report no
-contact where there is one. Native MuJoCo's collider drops vertices of its own: a box resting on a belt's
-edge along a line gets one contact instead of two as soon as the box pitches by 2e-5 rad
-(tests/test_mjx_contacts.py), and along the exploration of 3 random boxes it reported 3,607 contacts, 3,606
-of them among the polygon's 4,447 penetrating vertices (docs/results/simulation.md#colliders).
+Three colliders find where the box touches a belt, and they differ where it matters for turning a box:
 
-`box_box_contacts` below is the face-face clip with every vertex, for fixed shapes: the reference face is
+- native MuJoCo's (`mjc_BoxBox`, MuJoCo 4.0): a separating-axis test over the 15 axes (6 face normals, 9
+  edge-cross directions). When a face axis wins, the incident face clipped by the reference face: every
+  penetrating vertex of the overlap polygon. When an edge-cross axis wins, ONE contact at the midpoint of the
+  two supporting edges' closest points. A box lying nearly flat on a belt at micrometres of penetration
+  often makes an edge-cross axis a few micro-radians from the face normal win (it separates the boxes by
+  more than 5 % of the face depth more), so native reports a single contact on ~18 % of the box-belt
+  steps of an exploration where the box rests on a patch (docs/results/simulation.md#colliders).
+- MJX's own (`mujoco.mjx._src.collision_convex.box_box`): 4 of the polygon's vertices, some repeated when
+  fewer penetrate (a line contact's 4 contacts at its 2 ends, 3 and 1), and at sub-micrometre penetration
+  of nearly parallel faces sometimes none.
+- the polygon (`box_box_contacts`): every vertex of the overlap polygon, whichever axis wins.
+
+`native_box_box` ports native's rules to fixed shapes (8 slots; native's float32 or float64 tolerances
+by the inputs' dtype): in float64 it gives native's contacts to 1e-9 m along explorations and at random
+orientations (tests/test_mjx_contacts.py). It is the one that makes MJX simulate what native MuJoCo
+simulates, on which the physics prior and H were fitted.
+
+`box_box_contacts` is the face-face clip with every vertex, for fixed shapes: the reference face is
 the face of either box with the largest separating distance along its normal; the incident face is the
 other box's face most opposed to it; the contacts are the vertices of the two faces' overlap projected on
 the reference plane (incident corners inside the reference face, reference corners inside the incident
@@ -18,10 +28,9 @@ face, crossings of their edges, boundaries included: 24 candidates, the distinct
 slots), each at its depth below the reference plane, placed midway between the surfaces, with the
 reference face's normal. A vertex enters and leaves the set at zero depth, so the loads change without
 jumps, on the polygon the physics prior's `polygon_contacts` assumes. Edge-edge contacts of two boxes at a
-large angle are not modelled (a box lying on a belt meets it face on; MJX's own collider reduces edge
-contacts to one point too).
+large angle are not modelled (a box lying on a belt meets it face on).
 
-`box_contacts("polygon")` installs it for the MJX programs traced inside the `with` block only (`MjxEnv`
+`box_contacts(kind)` installs one of them for the MJX programs traced inside the `with` block only (`MjxEnv`
 traces its programs there), so other MJX models in the same process keep MJX's collider.
 """
 
@@ -144,6 +153,132 @@ def box_box_contacts(pos1, mat1, size1, pos2, mat2, size2):
     return dist, pos, jnp.broadcast_to(frame, (NCON, 3, 3))
 
 
+# Native MuJoCo's rounding scales (engine_collision_box.c, by precision) and rules, for `native_box_box`.
+_NATIVE_EPS = {  # dtype: (SEPEPS, PAREPS, SGNEPS)
+    jnp.dtype(jnp.float32): (1e-6, 1e-7, 1e-5),
+    jnp.dtype(jnp.float64): (1e-13, 1e-16, 1e-9),
+}
+_EDGEBIAS = 1e-6  # relative penalty on an edge axis against the best face axis
+_MINVAL = 1e-15  # mjMINVAL
+
+
+def native_box_box(pos1, mat1, size1, pos2, mat2, size2):
+    """`box_box_contacts`' outputs under native MuJoCo's rules (`mjc_BoxBox`, MuJoCo 4.0: separating-axis
+    test over the 15 axes, face axes preferred on near-ties, an edge axis within ~8 degrees of the best face
+    axis replaced by it unless it separates by 5 % of the face depth more): when an edge-cross axis wins,
+    ONE contact at the midpoint of the two supporting edges' closest points, along that axis; otherwise the
+    face clip (the same polygon as `box_box_contacts`, the reference face chosen as native chooses it).
+
+    For nearly parallel faces at shallow penetration the winning axis is often an edge-cross axis a few
+    micro-radians from the face normal, so a box lying on a belt gets a single contact on ~18 % of the
+    belt-steps of an exploration (docs/results/simulation.md#colliders): this is the collider that makes
+    MJX simulate what native MuJoCo simulates."""
+    sepeps, pareps, sgneps = _NATIVE_EPS[jnp.result_type(pos1, mat1, size1)]
+    rot = mat1.T @ mat2  # box 2's axes in box 1's frame (columns)
+    rotabs = jnp.abs(rot)
+    pos21 = mat1.T @ (pos2 - pos1)
+    pos12 = mat2.T @ (pos1 - pos2)
+    septol = sepeps * (jnp.sum(size1) + jnp.sum(size2))  # the pair's margin is 0
+    # Face axes: box 1's three, then box 2's (the first maximum wins, as native's strict >).
+    sep_faces = jnp.concatenate(
+        [jnp.abs(pos21) - size1 - rotabs @ size2, jnp.abs(pos12) - size2 - rotabs.T @ size1]
+    )
+    code_face = jnp.argmax(sep_faces)
+    sep_face = sep_faces[code_face]
+    separated = jnp.any(sep_faces > septol)
+    # Edge axes e_i x (box 2's axis j), in box 1's frame, in native's order.
+    sep_best, code = sep_face, jnp.asarray(-1)
+    for i in range(3):
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for j in range(3):
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            ax1, ax2 = -rot[i2, j], rot[i1, j]
+            norm2 = ax1 * ax1 + ax2 * ax2
+            ok = norm2 >= pareps
+            inv = 1.0 / jnp.sqrt(jnp.where(ok, norm2, 1.0))
+            ax1, ax2 = ax1 * inv, ax2 * inv
+            r1 = size1[i1] * jnp.abs(ax1) + size1[i2] * jnp.abs(ax2)
+            a21 = ax1 * rot[i1, j1] + ax2 * rot[i2, j1]
+            a22 = ax1 * rot[i1, j2] + ax2 * rot[i2, j2]
+            r2 = size2[j1] * jnp.abs(a21) + size2[j2] * jnp.abs(a22)
+            sep = jnp.abs(ax1 * pos21[i1] + ax2 * pos21[i2]) - r1 - r2
+            separated = separated | (ok & (sep > septol))
+            better = ok & (sep - _EDGEBIAS * jnp.abs(sep) > sep_best) & (sep > sep_face)
+            sep_best = jnp.where(better, sep, sep_best)
+            code = jnp.where(better, 6 + 3 * i + j, code)
+    # The edge axis of `code` (unit, box 1's frame); a near-parallel edge that separates little more
+    # than the best face gives way to it.
+    ei, ej = jnp.maximum(code - 6, 0) // 3, jnp.maximum(code - 6, 0) % 3
+    col = rot[:, ej]
+    axis = jnp.cross(jnp.eye(3, dtype=rot.dtype)[ei], col)  # (0, -rot[i2, j], rot[i1, j]) rolled to i
+    axis = axis / jnp.maximum(jnp.linalg.norm(axis), _MINVAL)
+    face_dir = jnp.where(code_face < 3, jnp.eye(3, dtype=rot.dtype)[code_face % 3], rot[:, code_face % 3])
+    face_dot = jnp.abs(axis @ face_dir)
+    give_way = (face_dot > 0.99) & (sep_best < sep_face + 0.05 * jnp.abs(sep_face) + _MINVAL)
+    edge = (code >= 6) & ~give_way
+    e_dist, e_pos, e_normal = _edge_contact(pos1, mat1, size1, size2, rot, pos21, ei, ej, axis, sgneps)
+    separated = separated | (edge & (e_dist > septol))
+    # Face clip against native's reference face (box 1's on a face tie).
+    ref2 = code_face >= 3
+    a = code_face % 3
+    sgn = jnp.where(jnp.where(ref2, pos12[a], pos21[a]) >= 0, 1.0, -1.0)  # side of the incident box
+    pick = lambda u, v: jnp.where(ref2, v, u)  # noqa: E731 (v when box 2 holds the reference face)
+    f_dist, f_pos, n = _polygon_contacts(
+        pick(pos1, pos2), pick(mat1, mat2), pick(size1, size2), a, sgn,
+        pick(pos2, pos1), pick(mat2, mat1), pick(size2, size1),
+    )  # fmt: skip
+    f_normal = jnp.where(ref2, -n, n)
+    slot0 = jnp.arange(NCON) == 0
+    dist = jnp.where(edge, jnp.where(slot0, e_dist, _NONE), f_dist)
+    dist = jnp.where(separated, _NONE, dist)
+    pos = jnp.where(edge, jnp.broadcast_to(e_pos, (NCON, 3)), f_pos)
+    frame = _frame(jnp.where(edge, e_normal, f_normal))
+    return dist, pos, jnp.broadcast_to(frame, (NCON, 3, 3))
+
+
+def _edge_contact(pos1, mat1, size1, size2, rot, pos21, i, j, axis, sgneps):
+    """Native's edge-edge contact for edge axis (i, j): dist, world position and normal (box 1 -> 2) at
+    the midpoint of the closest points of the two supporting edges; an axis component below `sgneps` makes
+    its corner ambiguous, and both are tried (the closest pair kept, native's order on ties)."""
+    eye = jnp.eye(3, dtype=rot.dtype)
+    axis = jnp.where(axis @ pos21 < 0, -axis, axis)  # from box 1 towards box 2
+    a2 = rot.T @ axis  # the axis in box 2's frame
+    i1, i2 = (i + 1) % 3, (i + 2) % 3
+    j1, j2 = (j + 1) % 3, (j + 2) % 3
+    amb1 = jnp.where(jnp.abs(axis[i1]) < sgneps, i1, jnp.where(jnp.abs(axis[i2]) < sgneps, i2, -1))
+    amb2 = jnp.where(jnp.abs(a2[j1]) < sgneps, j1, jnp.where(jnp.abs(a2[j2]) < sgneps, j2, -1))
+    d2 = rot[:, j]
+    b = d2[i]  # d1 . d2, d1 = e_i
+    denom = 1 - b * b
+    c1_base = jnp.where(axis >= 0, size1, -size1) * (1 - eye[i])  # corner of box 1's edge (component i: 0)
+    cc_base = jnp.where(a2 >= 0, -size2, size2) * (1 - eye[j])  # box 2's, along -axis, in its frame
+    best = None
+    for v1 in (0, 1):
+        for v2 in (0, 1):
+            c1 = jnp.where((v1 == 1) & (jnp.arange(3) == amb1), -c1_base, c1_base)
+            cc = jnp.where((v2 == 1) & (jnp.arange(3) == amb2), -cc_base, cc_base)
+            c2 = rot @ cc + pos21
+            e = c2 - c1
+            d1e, d2e = e[i], d2 @ e
+            s = jnp.where(denom < _MINVAL, 0.0, (d1e - b * d2e) / jnp.where(denom < _MINVAL, 1.0, denom))
+            s = jnp.clip(s, -size1[i], size1[i])
+            t = jnp.clip(b * s - d2e, -size2[j], size2[j])
+            s = jnp.clip(d1e + b * t, -size1[i], size1[i])
+            p1 = c1 + s * eye[i]
+            p2 = c2 + t * d2
+            gap2 = jnp.sum(jnp.square(p2 - p1))
+            tried = ((v1 == 0) | (amb1 >= 0)) & ((v2 == 0) | (amb2 >= 0))
+            if best is None:
+                best = (gap2, p1, p2)
+            else:
+                take = tried & (gap2 < best[0])
+                best = tuple(jnp.where(take, new, old) for new, old in zip((gap2, p1, p2), best, strict=True))
+    _, w1, w2 = best
+    dist = (w2 - w1) @ axis
+    mid = 0.5 * (w1 + w2)
+    return dist, mat1 @ mid + pos1, mat1 @ axis
+
+
 def _frame(n):
     """MuJoCo's contact frame for normal n (rows: normal, two tangents), as mju_makeFrame / MJX."""
     from mujoco.mjx._src import math as mjx_math  # noqa: PLC0415 (MJX is imported on first use)
@@ -151,24 +286,30 @@ def _frame(n):
     return mjx_math.make_frame(n)
 
 
-def _collide(m, d, key, geom):
-    """MJX collision-function signature: (model, data, function key, (P, 2) geom pairs) -> dist (P*8,),
-    pos (P*8, 3), frame (P*8, 3, 3), pair-major."""
-    g1, g2 = geom.T
-    mats = d.geom_xmat.reshape(-1, 3, 3)
-    dist, pos, frame = jax.vmap(box_box_contacts)(
-        d.geom_xpos[g1], mats[g1], m.geom_size[g1], d.geom_xpos[g2], mats[g2], m.geom_size[g2]
-    )
-    return dist.reshape(-1), pos.reshape(-1, 3), frame.reshape(-1, 3, 3)
+def _collider(contacts):
+    """An MJX collision function (model, data, function key, (P, 2) geom pairs) -> dist (P*8,),
+    pos (P*8, 3), frame (P*8, 3, 3), pair-major, from a per-pair `contacts` function."""
+
+    def collide(m, d, key, geom):
+        g1, g2 = geom.T
+        mats = d.geom_xmat.reshape(-1, 3, 3)
+        dist, pos, frame = jax.vmap(contacts)(
+            d.geom_xpos[g1], mats[g1], m.geom_size[g1], d.geom_xpos[g2], mats[g2], m.geom_size[g2]
+        )
+        return dist.reshape(-1), pos.reshape(-1, 3), frame.reshape(-1, 3, 3)
+
+    collide.ncon = NCON
+    return collide
 
 
-_collide.ncon = NCON
+_COLLIDERS = {"polygon": _collider(box_box_contacts), "native": _collider(native_box_box)}
 
 
 @contextlib.contextmanager
 def box_contacts(kind: str = "polygon"):
     """Within the block, MJX programs traced (and `mjx.make_data` called) collide box pairs with `kind`:
-    "polygon" (`box_box_contacts`, 8 slots per pair) or "mjx" (MJX's own collider, unchanged)."""
+    "polygon" (`box_box_contacts`, 8 slots per pair), "native" (`native_box_box`, 8 slots) or "mjx" (MJX's
+    own collider, unchanged)."""
     if kind not in MJX_BOX_CONTACTS:
         raise ValueError(f"MJX box contacts must be one of {MJX_BOX_CONTACTS}, got {kind!r}")
     if kind == "mjx":
@@ -185,7 +326,7 @@ def box_contacts(kind: str = "polygon"):
             "boxjax's box contacts cannot be installed (set gripper.mjx_box_contacts = 'mjx')"
         )
     old = table[k]
-    table[k] = _collide
+    table[k] = _COLLIDERS[kind]
     try:
         yield
     finally:
