@@ -7,8 +7,8 @@ exploration H reads; 2 s of spin with the belts at +-0.1 m/s; 2 s of spin with c
 - native MuJoCo (the reference),
 - native MuJoCo with the box's start moved by a random shift of at most 1e-6 m (`TaskConfig.init_xy_noise`):
   what chaos alone gives (the control),
-- MJX with MJX's own box-box collider and with `mjx_box_contacts = "polygon"` (`boxjax.sim.mjx_contacts`),
-  each also with the 1e-6 m shift (each simulator's own sensitivity).
+- MJX with each box-belt collider of `config.MJX_BOX_CONTACTS` (MJX's own; "polygon"; "native", native
+  MuJoCo's rules: `boxjax.sim.mjx_contacts`), each also with the 1e-6 m shift (its own sensitivity).
 
 For each sequence and simulator: the paired difference of the final yaw, x and y from the reference (mean,
 standard error, median of the absolute values). A mean several standard errors from 0 where the control's

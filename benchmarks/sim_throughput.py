@@ -3,7 +3,7 @@
 Prints one JSON object. "steps" are physics steps (GripperConfig.timestep = 2 ms); a world-step is one
 physics step of one world. Compile time and run time are reported separately; run times are medians.
 
-    python benchmarks/sim_throughput.py [--batches 1 64 512 2048] [--quick]
+    python benchmarks/sim_throughput.py [--batches 1 64 512 2048] [--collider-batches 64] [--quick]
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from _util import emit, machine, timed
 from mujoco import rollout as mj_rollout
 
 from boxjax import massdist
-from boxjax.config import DEFAULT
+from boxjax.config import DEFAULT, MJX_BOX_CONTACTS
 from boxjax.sim import model
 from boxjax.sim.mjx_backend import MjxEnv, chunked_vmap, default_chunk
 
@@ -102,11 +102,11 @@ def main():
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 512, 2048])
     ap.add_argument("--quick", action="store_true", help="fewer repeats and steps (for smoke tests)")
     ap.add_argument(
-        "--polygon-batches",
+        "--collider-batches",
         type=int,
         nargs="*",
         default=[64],
-        help="MJX batches also timed with gripper.mjx_box_contacts = 'polygon' (none: skip)",
+        help="MJX batches also timed with each other gripper.mjx_box_contacts (none: skip)",
     )
     args = ap.parse_args()
     cfg, dist = DEFAULT, massdist.named("A")
@@ -125,12 +125,17 @@ def main():
         n_control = 1 if args.quick else max(1, min(40, 2048 // max(b, 1)))
         _log(f"mjx batch {b}: {n_control} control steps per call")
         out["mjx"].append(mjx_batch(env, params, b, n_control, min(reps, 3)))
-    poly = MjxEnv(cfg.replace(gripper=dataclasses.replace(cfg.gripper, mjx_box_contacts="polygon")))
-    out["mjx_polygon_contacts"] = []
-    for b in args.polygon_batches:
-        n_control = 1 if args.quick else max(1, min(40, 2048 // max(b, 1)))
-        _log(f"mjx batch {b}, polygon contacts: {n_control} control steps per call")
-        out["mjx_polygon_contacts"].append(mjx_batch(poly, poly.box_params(dist), b, n_control, min(reps, 3)))
+    out["mjx_box_contacts"] = cfg.gripper.mjx_box_contacts
+    for kind in MJX_BOX_CONTACTS:
+        if kind == cfg.gripper.mjx_box_contacts:
+            continue
+        other = MjxEnv(cfg.replace(gripper=dataclasses.replace(cfg.gripper, mjx_box_contacts=kind)))
+        out[f"mjx_{kind}_contacts"] = []
+        for b in args.collider_batches:
+            n_control = 1 if args.quick else max(1, min(40, 2048 // max(b, 1)))
+            _log(f"mjx batch {b}, {kind} contacts: {n_control} control steps per call")
+            row = mjx_batch(other, other.box_params(dist), b, n_control, min(reps, 3))
+            out[f"mjx_{kind}_contacts"].append(row)
     best = max(r["world_steps_per_s"] for r in out["mjx"])
     out["mjx_best_world_steps_per_s"] = best
     out["ratio_mjx_best_over_native_1thread"] = best / out["native_steps_per_s_1thread"]

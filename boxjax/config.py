@@ -37,7 +37,7 @@ class Hardware:
 
 
 HARDWARE = Hardware()
-MJX_BOX_CONTACTS = ("mjx", "polygon", "native")  # GripperConfig.mjx_box_contacts
+MJX_BOX_CONTACTS = ("native", "mjx", "polygon")  # GripperConfig.mjx_box_contacts
 
 
 @dataclass(frozen=True)
@@ -108,11 +108,11 @@ class GripperConfig:
     contact_cone: str = "pyramidal"  # "pyramidal" or "elliptic"
     friction_timeconst: float = 0.0  # s, solreffriction time constant; 0 = MuJoCo's default (solref)
     # How the MJX backend finds the box-belt contacts (native MuJoCo always uses its own box-box collider):
-    # "mjx", MJX's collider (4 points per belt, a point repeated when fewer penetrate), or "polygon",
-    # every vertex of the touching faces' overlap (`boxjax.sim.mjx_contacts`; docs/results/simulation.md).
-    mjx_box_contacts: str = (
-        "mjx"  # "mjx", "polygon" or "native": MJX's box-belt collider (native uses its own)
-    )
+    # "native", native MuJoCo's rules (one contact when an edge-cross axis wins the separating-axis test),
+    # so that MJX simulates what native MuJoCo does (without it MJX turns boxes measurably more); "mjx",
+    # MJX's collider (4 points per belt, a point repeated when fewer penetrate); "polygon", every vertex of
+    # the touching faces' overlap (`boxjax.sim.mjx_contacts`; docs/results/simulation.md#colliders).
+    mjx_box_contacts: str = "native"
     timestep: float = 0.002  # s, physics step
     control_dt: float = 0.05  # s, one control step (action held constant)
     gravity: float = 9.81  # m/s^2

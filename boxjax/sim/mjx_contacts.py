@@ -7,9 +7,10 @@ Three colliders find where the box touches a belt, and they differ where it matt
   edge-cross directions). When a face axis wins, the incident face clipped by the reference face: every
   penetrating vertex of the overlap polygon. When an edge-cross axis wins, ONE contact at the midpoint of the
   two supporting edges' closest points. A box lying nearly flat on a belt at micrometres of penetration
-  often makes an edge-cross axis a few micro-radians from the face normal win (it separates the boxes by
-  more than 5 % of the face depth more), so native reports a single contact on ~18 % of the box-belt
-  steps of an exploration where the box rests on a patch (docs/results/simulation.md#colliders).
+  often makes an edge-cross axis a few micro-radians from the face normal win (along it the boxes overlap
+  less than along the face normal, by more than 5 % of the face depth), so native reports a single contact on 36 % of the box-belt
+  steps in contact along explorations, on 25 % where 2-5 polygon vertices penetrate
+  (benchmarks/contact_kinds.py, docs/results/simulation.md#colliders).
 - MJX's own (`mujoco.mjx._src.collision_convex.box_box`): 4 of the polygon's vertices, some repeated when
   fewer penetrate (a line contact's 4 contacts at its 2 ends, 3 and 1), and at sub-micrometre penetration
   of nearly parallel faces sometimes none.
@@ -170,9 +171,9 @@ def native_box_box(pos1, mat1, size1, pos2, mat2, size2):
     face clip (the same polygon as `box_box_contacts`, the reference face chosen as native chooses it).
 
     For nearly parallel faces at shallow penetration the winning axis is often an edge-cross axis a few
-    micro-radians from the face normal, so a box lying on a belt gets a single contact on ~18 % of the
-    belt-steps of an exploration (docs/results/simulation.md#colliders): this is the collider that makes
-    MJX simulate what native MuJoCo simulates."""
+    micro-radians from the face normal, so a box lying on a belt gets a single contact on about a third
+    of the belt-steps of an exploration (docs/results/simulation.md#colliders): this is the collider that
+    makes MJX simulate what native MuJoCo simulates."""
     sepeps, pareps, sgneps = _NATIVE_EPS[jnp.result_type(pos1, mat1, size1)]
     rot = mat1.T @ mat2  # box 2's axes in box 1's frame (columns)
     rotabs = jnp.abs(rot)
