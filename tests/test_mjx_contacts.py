@@ -144,9 +144,10 @@ def _inner_edge_line(pitch):
 
 
 def test_native_mujoco_collapses_a_pitched_line_contact_to_one_point():
-    """What the docs say of native MuJoCo's collider (docs/results/simulation.md#backend-agreement): the
-    box lying on belt 2's inner edge gets both ends of the line as contacts, until it pitches by 2e-5 rad
-    (8 um of depth between the ends): then one. The polygon keeps both, at their depths."""
+    """What the docs say of native MuJoCo's collider (docs/results/simulation.md#colliders): the box lying
+    on belt 2's inner edge gets both ends of the line as contacts, until it pitches by 2e-5 rad (8 um of
+    depth between the ends): then an edge-cross axis wins and one contact remains. The polygon keeps both,
+    at their depths."""
     for pitch, n_native in ((0.0, 2), (2e-5, 1), (-2e-5, 1)):
         d = _inner_edge_line(pitch)
         native = [c for c in d.contact[: d.ncon] if 1 in c.geom and c.dist < 0]
