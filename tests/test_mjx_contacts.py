@@ -157,6 +157,7 @@ def test_native_mujoco_collapses_a_pitched_line_contact_to_one_point():
         np.testing.assert_allclose(np.ptp(dist), abs(pitch) * np.ptp(pos[:, 0]), atol=2e-7)
 
 
+@pytest.mark.slow  # MJX's own collider is not the default (suite time)
 def test_mjx_own_collider_repeats_a_point_of_a_line_contact():
     """Why the polygon exists: MJX's box-box collider fills its 4 slots by repeating the vertices of a line
     contact, so one end carries a multiple of the other's load."""
@@ -223,10 +224,10 @@ def test_native_rules_are_native_mujocos_along_an_exploration(x64):
         d.ctrl[:], p = np.asarray(ctrl), np.asarray(p)
         for k in range(CFG.gripper.n_substeps):
             mujoco.mj_step(m, d)  # d.contact and d.geom_xpos: both of the state before the step
-            for belt in belts if k % 3 == 0 else ():  # every third physics step (suite time)
+            for belt in belts if k % 5 == 0 else ():  # every fifth physics step (suite time)
                 _compare_native_rules(d, m, box_geom, belt, kinds)
         native.recentre_belts(idx, d.qpos)
-    assert min(kinds.values()) >= 10, kinds  # each of native's paths was compared
+    assert min(kinds.values()) >= 8, kinds  # each of native's paths was compared
 
 
 def test_native_rules_at_random_orientations(x64):
@@ -271,7 +272,7 @@ def test_the_config_chooses_the_collider_and_names_bad_values(capsys, tmp_path):
     assert "it does nothing here" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("kind", ["polygon", "native"])
+@pytest.mark.parametrize("kind", [pytest.param("polygon", marks=pytest.mark.slow), "native"])
 def test_mjx_with_these_contacts_accelerates_the_box_as_native_mujoco(kind):
     """One MJX forward (float32) at a state where the colliders agree: the box's accelerations within 1 %
     of native MuJoCo's; the contact arrays hold 8 slots per belt."""

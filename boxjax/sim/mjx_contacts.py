@@ -8,9 +8,9 @@ Three colliders find where the box touches a belt, and they differ where it matt
   penetrating vertex of the overlap polygon. When an edge-cross axis wins, ONE contact at the midpoint of the
   two supporting edges' closest points. A box lying nearly flat on a belt at micrometres of penetration
   often makes an edge-cross axis a few micro-radians from the face normal win (along it the boxes overlap
-  less than along the face normal, by more than 5 % of the face depth), so native reports a single contact on 36 % of the box-belt
-  steps in contact along explorations, on 25 % where 2-5 polygon vertices penetrate
-  (benchmarks/contact_kinds.py, docs/results/simulation.md#colliders).
+  less than along the face normal, by more than 5 % of the face depth), so native reports a single
+  contact on 36 % of the box-belt steps in contact along explorations, on 25 % where 2-5 polygon vertices
+  penetrate (benchmarks/contact_kinds.py, docs/results/simulation.md#colliders).
 - MJX's own (`mujoco.mjx._src.collision_convex.box_box`): 4 of the polygon's vertices, some repeated when
   fewer penetrate (a line contact's 4 contacts at its 2 ends, 3 and 1), and at sub-micrometre penetration
   of nearly parallel faces sometimes none.
@@ -166,7 +166,7 @@ _MINVAL = 1e-15  # mjMINVAL
 def native_box_box(pos1, mat1, size1, pos2, mat2, size2):
     """`box_box_contacts`' outputs under native MuJoCo's rules (`mjc_BoxBox`, MuJoCo 4.0: separating-axis
     test over the 15 axes, face axes preferred on near-ties, an edge axis within ~8 degrees of the best face
-    axis replaced by it unless it separates by 5 % of the face depth more): when an edge-cross axis wins,
+    axis replaced by it unless it beats the face by more than 5 % of the face depth): when an edge axis wins,
     ONE contact at the midpoint of the two supporting edges' closest points, along that axis; otherwise the
     face clip (the same polygon as `box_box_contacts`, the reference face chosen as native chooses it).
 
