@@ -9,8 +9,8 @@ Three colliders find where the box touches a belt, and they differ where it matt
   two supporting edges' closest points. A box lying nearly flat on a belt at micrometres of penetration
   often makes an edge-cross axis a few micro-radians from the face normal win (along it the boxes overlap
   less than along the face normal, by more than 5 % of the face depth), so native reports a single
-  contact on 36 % of the box-belt steps in contact along explorations, on 25 % where 2-5 polygon vertices
-  penetrate (benchmarks/contact_kinds.py, docs/results/simulation.md#colliders).
+  contact on 36 % of the box-belt steps in contact along explorations, on 25 % where two or more polygon
+  vertices penetrate (benchmarks/contact_kinds.py, docs/results/simulation.md#colliders).
 - MJX's own (`mujoco.mjx._src.collision_convex.box_box`): 4 of the polygon's vertices, some repeated when
   fewer penetrate (a line contact's 4 contacts at its 2 ends, 3 and 1), and at sub-micrometre penetration
   of nearly parallel faces sometimes none.
