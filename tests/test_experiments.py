@@ -183,14 +183,23 @@ def test_the_exploration_guard_is_a_fraction_of_the_limit():
 def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path, capsys):
     out = tmp_path / "ev"
     png = tmp_path / "ev.png"
+    # A step cap of 200 and a planner without gradient steps keep the suite's time bounded (seed 3's first
+    # safe box runs to the 600-step cap; the gradient's program is 3/4 of the default planner's compile
+    # time); the replay must then simulate the evaluation's config and controller, not the defaults.
+    conf = tmp_path / "short.toml"
+    conf.write_text("[task]\nmax_steps = 200\n")
     argv = [
         "evaluate",
+        "--config",
+        str(conf),
         "--boxes",
         "2",
         "--hazardous",
         "1",
         "--seed",
         "3",
+        "--gradient-steps",
+        "0",
         "--out",
         str(out),
         "--plot",
