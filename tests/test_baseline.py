@@ -108,8 +108,8 @@ def test_model_slot_interface_and_no_margin(linear_model):
 def test_same_action_for_same_model_and_key_whichever_model(linear_model):
     w_model, _, _ = linear_model
     p_model = prior.make_prior(massdist.voxel_masses(massdist.named("A")), None)
-    # Without gradient steps: the slot, not the refinement, is tested here (the default planner's determinism
-    # per key: tests/test_sampling_planner.py); the gradient through the prior took 20 s to compile.
+    # Without gradient steps: the slot, not the refinement, is tested here (the same plan per key with
+    # gradient steps: W and PETS in tests/test_pets.py); the gradient through the prior took 20 s to compile.
     pl = sp.make(DEFAULT, sp.SamplingOptions(n_samples=8, horizon=3, gradient_steps=0))
     obs = planning.observation(
         planning.initial_window(np.array([-0.1, 0.1, 0.0, 0.0, 0.0])), np.zeros(2), np.pi / 2
