@@ -52,6 +52,7 @@ def test_the_planner_plans_over_one_prior_per_friction_on_the_same_box():
     assert not np.allclose(rolls[0], rolls[2], atol=1e-4)
 
 
+@pytest.mark.slow  # 18 s of the default suite, nearly all compiling; the planner over the set is tested above
 def test_an_episode_plans_over_the_friction_set():
     from boxjax.control.episode import run_episode
     from boxjax.planners.sampling import SamplingOptions

@@ -106,18 +106,25 @@ def test_plans_from_rest_turn_the_box_the_right_way_and_respect_limits():
     plan runs belt 1 (left, y < 0) faster forwards (+x) than belt 2. One plan alone may lean on the
     carriages instead (keys 0-11, 2026-12-06: belt 1 - belt 2 from -0.04 to 0.11 m/s, mean 0.046; predicted
     yaw 0.02-0.10 rad): a round-off change in the gradient flipped key 0's. Every action is within the
-    limits. (Default options: the planner the controller uses.)"""
+    limits. (The planner and model the controller uses, built as `run_episode` builds them: the same
+    compiled program, which the session's compilation cache then shares with the episode tests.)"""
+    from boxjax.control import ControllerConfig
+    from boxjax.control.models import planning_model
+    from boxjax.planners.registry import make_planner
+
+    ctrl = ControllerConfig()
     o = sp.SamplingOptions()
-    plan = sp.make_sampling_planner(CFG, o)
-    model = _model()
+    assert (ctrl.sampling or o) == o
+    mpc = make_planner(CFG, ctrl)
+    model = planning_model(CFG, ctrl, massdist.named("uniform", CFG.box))
+    obs = planning.observation(WINDOW, jnp.zeros(2), jnp.pi / 2)
     differences = []
     for seed in range(8):
-        nominal = sp.initial_nominal(CFG, o)
+        nominal = mpc.init(obs)
         key = jax.random.PRNGKey(seed)
         for _ in range(6):  # receding-horizon iterations on the same state
             key, k = jax.random.split(key)
-            a, info = plan(k, model, WINDOW, jnp.zeros(2), jnp.pi / 2, nominal)
-            nominal = sp.shift_nominal(info.nominal)
+            a, nominal, info = mpc.optimize(k, model, obs, nominal)  # the nominal comes back shifted
         a, states, plan_seq = np.asarray(a), np.asarray(info.states), np.asarray(info.nominal)
         differences.append(np.mean(plan_seq[:, 0] - plan_seq[:, 1]))  # m/s, over the planned 0.5 s
         assert states[-1, geometry.YAW] > 0.01, (seed, states[-1])  # rad, turning the right way
