@@ -70,6 +70,7 @@ def three(boxes):
     return c0, design.evaluate(DEFAULT, models, seqs, c0)
 
 
+@pytest.mark.slow  # with the next: 15 s compiling `design.evaluate`; the gain's closed form and Jacobian stay
 def test_no_motion_reveals_nothing(boxes, three):
     """Belts at rest and carriages still: the pose does not depend on where the mass sits, so the Fisher
     information is zero, the gain 0 nats and the posterior the prior (closed form)."""
@@ -93,6 +94,7 @@ def test_gain_is_the_gaussian_information_gain():
     np.testing.assert_allclose(std, np.sqrt(np.diag(post)), rtol=1e-3)
 
 
+@pytest.mark.slow  # shares the fixture above
 def test_more_turning_shows_more(three):
     """The shipped sequence reveals something (gain > 0), and its turn and probes show more than its turns
     alone."""

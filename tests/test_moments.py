@@ -132,6 +132,7 @@ def _fake_data(n: int, seed: int = 0) -> dict:
     }
 
 
+@pytest.mark.slow  # 12 s compiling the training step; loading the shipped file is tested below
 def test_training_learns_what_the_features_show_and_round_trips(tmp_path):
     data = _fake_data(400)
     model, report = TM.train(

@@ -300,6 +300,7 @@ def _tiny_dataset(path, episodes: int = 4, steps: int = 60) -> dict:
     return tr
 
 
+@pytest.mark.slow  # 9 s compiling the ensemble's training; PETS's training is tested above
 def test_cli_train_baseline_model_pets_on_a_dataset(tmp_path, capsys, monkeypatch):
     import json
 

@@ -107,6 +107,7 @@ def test_a_perfect_sensor_leaves_the_data_and_the_view_is_reproducible():
         SensorRandomisation(drop_rate=(0.0, 1.0))
 
 
+@pytest.mark.slow  # 11 s compiling H's training; the view it trains on is tested above
 def test_train_estimator_with_a_randomised_sensor_trains_on_the_view_and_says_so(tmp_path):
     from boxjax import estimator as E
     from boxjax.training import dataset as ds
