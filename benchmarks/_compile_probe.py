@@ -10,6 +10,8 @@ import os
 
 import jax.monitoring
 
+from boxjax.fileio import atomic_path
+
 _current: dict = {"test": None}
 _per_test: dict[str, dict[str, float]] = {}
 
@@ -35,7 +37,5 @@ def pytest_sessionfinish(session) -> None:
     if not folder:
         return
     name = os.environ.get("PYTEST_XDIST_WORKER", "main")
-    tmp = os.path.join(folder, f".{name}.json.tmp")
-    with open(tmp, "w") as f:
+    with atomic_path(os.path.join(folder, f"{name}.json"), suffix=".json") as tmp, open(tmp, "w") as f:
         json.dump(_per_test, f)
-    os.replace(tmp, os.path.join(folder, f"{name}.json"))
