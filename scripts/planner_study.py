@@ -10,6 +10,10 @@ planner study in the README: horizon, knots, MPPI / CEM, gradient refinement, po
 planner=simulator`: e.g. `--simulator start=planar` plans with MuJoCo from what the planar observation
 shows); `--safe-family F` draws the safe boxes from family F (as `boxjax evaluate --safe-family`).
 
+`--monitor KEY=VALUE` sets `control.monitor.MonitorConfig` fields (e.g. `--monitor
+recover_until_worse=false`), `--fault KEY=VALUE` `sim.faults.Faults` fields (e.g. `--fault obs_latency=2
+--fault friction=0.4`).
+
 `--mixture` (two or more) plans over a mixture of physics priors, one per setting
 (`ControllerConfig.prior_params` as a tuple, `planning.Mixture`), each candidate scored by its mean cost
 over them (`--sampling particle_risk=worst` for the worst). The episodes run batched with one host
@@ -29,10 +33,12 @@ from boxjax import massdist
 from boxjax.config import DEFAULT
 from boxjax.control import batch
 from boxjax.control.config import ControllerConfig
+from boxjax.control.monitor import MonitorConfig
 from boxjax.experiments import evaluation as experiments
 from boxjax.planners.sampling import SamplingOptions
 from boxjax.planners.simulator import SimulatorOptions
 from boxjax.prior.predictor import PriorParams
+from boxjax.sim.faults import Faults
 
 
 def _pairs(items: list[str], what: str) -> dict:
@@ -67,6 +73,12 @@ def main(argv=None) -> dict:
         help="one prior setting of a mixture of priors (give two or more)",
     )
     ap.add_argument("--simulator", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument(
+        "--monitor", action="append", default=[], metavar="KEY=VALUE", help="a MonitorConfig field"
+    )
+    ap.add_argument(
+        "--fault", action="append", default=[], metavar="KEY=VALUE", help="a sim.faults.Faults field"
+    )
     ap.add_argument("--safe-family", default="gaussian", choices=massdist.FAMILIES)
     ap.add_argument("--out", help="write evaluation.json and boxes.npz here (for `boxjax rotate --replay`)")
     args = ap.parse_args(argv)
@@ -87,9 +99,16 @@ def main(argv=None) -> dict:
             if fields.get("planner") != "simulator":
                 raise ValueError("--simulator sets the simulator planner: add --controller planner=simulator")
             fields["simulator"] = SimulatorOptions(**_pairs(args.simulator, "simulator"))
+        if args.monitor:
+            if "monitor" in fields:
+                raise ValueError(
+                    "give the monitor's fields with --monitor KEY=VALUE, not --controller monitor="
+                )
+            fields["monitor"] = MonitorConfig(**_pairs(args.monitor, "monitor"))
         ctrl = ControllerConfig(
             sampling=SamplingOptions(**_pairs(args.sampling, "sampling")), prior_params=prior_params, **fields
         )
+        faults = Faults.from_dict(_pairs(args.fault, "fault"))
     except (TypeError, ValueError) as e:
         sys.stderr.write(f"planner_study: error: {e}\n")
         raise SystemExit(2) from e
@@ -102,6 +121,7 @@ def main(argv=None) -> dict:
         estimator=args.estimator,
         ctrl=ctrl,
         safe_family=args.safe_family,
+        faults=faults,
     )
     if args.out:
         experiments.write_evaluation(ev, args.out, " ".join(["python", *sys.argv]))

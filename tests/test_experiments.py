@@ -295,6 +295,9 @@ def test_controller_settings_round_trip():
     assert experiments.controller_from_settings(st) == late
     del st["controller"]["delay_reference"]  # written before a late loop slowed the planner: it never did
     assert experiments.controller_from_settings(st).delay_reference is None
+    assert experiments.controller_from_settings(st).monitor.recover_until_worse
+    del st["controller"]["monitor"]["recover_until_worse"]  # written before recoveries could end
+    assert not experiments.controller_from_settings(st).monitor.recover_until_worse
 
 
 def test_the_controllers_prior_settings_reach_the_planners_model():

@@ -385,6 +385,37 @@ def test_a_box_at_rest_between_the_thresholds_is_recovered_by_actions_predicted_
     assert not any(np.array_equal(a, planned) for a in sent) and off.final and off.ended
 
 
+def test_recoveries_end_once_one_leaves_the_box_further_out():
+    """A box at rest at 3.0 cm, recovered by an action predicted to take it to 2.7 cm, that comes to rest
+    at 3.05 cm instead: the model has the direction wrong there, so no further recovery is sent in the
+    episode however much it predicts (`recover_until_worse`), and the stop times out. One that came to
+    rest at 2.95 cm (closer, if by less than predicted), or further by no more than the estimate's
+    k_sigma std (1 mm here), is followed by the next. Off: recoveries go on while a gain is predicted."""
+    planned = np.array([0.05, -0.05, 0.004, 0.0])
+    rest, moving = np.zeros(2), np.array([0.1, -0.1])
+    good = _check(0.030, now=0.030, end=0.027)
+    assert monitor.recovery_worse(0.030, 0.0305, 0.0) and not monitor.recovery_worse(0.030, 0.0305, 0.001)
+    for until_worse, landed, sigma, again in (
+        (True, 0.0305, 0.0, False),
+        (True, 0.0295, 0.0, True),
+        (True, 0.0305, 0.001, True),
+        (False, 0.0305, 0.0, True),
+    ):
+        m = Monitor(CFG, MonitorConfig(recover_until_worse=until_worse, stop_timeout=30), delay=0)
+        m.decide(0, planned, _check(0.034), sigma, 0, moving)  # stop
+        for t in (1, 2):
+            m.decide(t, planned, _check(0.030), sigma, 0, rest)
+        np.testing.assert_array_equal(m.decide(3, planned, good, sigma, 0, rest), planned)  # recovery
+        for t in (4, 5):  # its stop, the box seen at `landed`
+            m.decide(t, planned, _check(landed), sigma, 0, moving)
+        nxt = _check(0.029, now=landed, end=landed - 0.003)
+        sent = [m.decide(t, planned, nxt, sigma, 0, rest) for t in range(6, 40)]
+        assert m.recovery_failed != again, (until_worse, landed, sigma)
+        assert (m.recoveries[1:2] == [6]) == again, m.recoveries
+        if not again:
+            assert not any(np.array_equal(a, planned) for a in sent) and m.final and m.ended
+
+
 def test_carriage_travel_in_flight_widens_the_margin_by_the_drags_uncertainty():
     """With 2 steps of delay, two 1 cm moves of carriage 1 in flight (2 cm, summed: the prior's drag error
     is the same fraction for every move of that carriage under that box) add drag_std x 2 cm to the

@@ -50,7 +50,8 @@ def _checks(rng, n, horizon):
 @pytest.mark.parametrize(
     "settings,seed,visits",
     [
-        (MonitorConfig(), 0, ("stops", "resumes", "recoveries")),
+        # a recovery that left the box further out ends the recoveries (`recover_until_worse`)
+        (MonitorConfig(), 0, ("stops", "resumes", "recoveries", "recovery_failed")),
         (MonitorConfig(max_stops=3, stop_timeout=12), 1, ("stops", "ended")),  # final: timed out
         (MonitorConfig(recover=False, stop_timeout=20, k_sigma=2.0), 2, ("stops", "resumes")),
         # final: the max_stops-th stop
@@ -80,6 +81,7 @@ def test_pure_monitor_decides_as_the_host_monitor(settings, seed, visits):
         assert bool(ev.resume) == (bool(host.resumes) and host.resumes[-1] == t), t
         assert bool(ev.recovery) == (bool(host.recoveries) and host.recoveries[-1] == t), t
         assert bool(st.ended) == host.ended and bool(st.stopped) == host.stopped, t
+        assert bool(st.recovery_failed) == host.recovery_failed, t
         if bool(ev.stopping):
             stopping.append(t)
     assert set(stopping) == host.stopping_steps

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from boxjax.config import Config
-from boxjax.control.monitor import Check, MonitorConfig
+from boxjax.control.monitor import Check, MonitorConfig, recovery_worse
 
 
 class MonitorState(NamedTuple):
@@ -32,6 +32,9 @@ class MonitorState(NamedTuple):
     plan_i: jax.Array  # () int32 next action of `plan` to send
     plan_n: jax.Array  # () int32 actions in `plan` (then rest)
     rest_run: jax.Array  # () int32 rest actions (all zeros) sent in a row up to now
+    judging: jax.Array  # () bool: a recovery not yet judged (`recover_until_worse`)
+    recovered_from: jax.Array  # () float32 the balance error it was sent at (m)
+    recovery_failed: jax.Array  # () bool: a recovery left the box further out: no more recoveries
 
 
 class Events(NamedTuple):
@@ -57,7 +60,8 @@ def check_supported(settings: MonitorConfig, delay: int = 0) -> None:
 def init(settings: MonitorConfig) -> MonitorState:
     """A monitor that has sent nothing yet (running)."""
     f, i = jnp.zeros((), bool), jnp.zeros((), jnp.int32)
-    return MonitorState(f, i, i, f, f, f, jnp.zeros((settings.horizon, 4), jnp.float32), i, i, i)
+    plan = jnp.zeros((settings.horizon, 4), jnp.float32)
+    return MonitorState(f, i, i, f, f, f, plan, i, i, i, f, jnp.zeros((), jnp.float32), f)
 
 
 def decide(
@@ -74,6 +78,9 @@ def decide(
     still = (st.rest_run >= 1) & jnp.all(jnp.abs(belt_speed) <= m.standstill_speed)
     recovering = st.recovering & ~still
     margin = m.k_sigma * jnp.asarray(sigma, jnp.float32)  # no delay: the estimate's margin alone
+    # the last recovery played out: judged
+    judged = still & st.judging
+    failed = st.recovery_failed | (judged & recovery_worse(st.recovered_from, check.now, margin))
     go_error = check.go + margin
     running = ~st.stopped
 
@@ -85,12 +92,14 @@ def decide(
     stopped_for = jnp.where(running, 0, st.stopped_for + 1)
     active = st.stopped & ~st.final
     resume = active & still & (go_error < resume_below)
-    recovers = (check.go_ahead + margin < stop_at) & (check.go_end <= check.now - m.recover_gain)
+    recovers = ~failed & (check.go_ahead + margin < stop_at) & (check.go_end <= check.now - m.recover_gain)
     recovery = active & ~resume & still & m.recover & recovers
     timeout = active & ~resume & ~recovery & (stopped_for >= m.stop_timeout)
     final = final | timeout
     ended = st.ended | (st.stopped & ~recovery & final & still & (stopped_for >= 2))
     recovering = recovering | recovery
+    judging = (st.judging & ~judged) | (recovery & m.recover_until_worse)
+    recovered_from = jnp.where(recovery, check.now, st.recovered_from)
     stopped = (st.stopped | stop_now) & ~resume
 
     # the committed plan: a new stop's, a recovery's (its stop without the last step), else as it was
@@ -104,7 +113,8 @@ def decide(
     plan_i = plan_i + (pop & has_plan)
     rest_run = jnp.where(jnp.all(sent == 0), st.rest_run + 1, 0)
     new = MonitorState(
-        stopped, stopped_for, balance_stops, final, ended, recovering, plan, plan_i, plan_n, rest_run
-    )
+        stopped, stopped_for, balance_stops, final, ended, recovering, plan, plan_i, plan_n, rest_run,
+        judging, recovered_from, failed,
+    )  # fmt: skip
     events = Events(stop=stop_now, resume=resume, recovery=recovery, stopping=pop & ~recovering)
     return new, sent, events

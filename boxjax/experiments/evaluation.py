@@ -484,7 +484,10 @@ def controller_from_settings(st: dict) -> ControllerConfig:
     if isinstance(c.get("pose_filter"), dict):
         c["pose_filter"] = FilterConfig(**c["pose_filter"])
     # evaluations written before the runtime safety monitor ran without one
-    c["monitor"] = MonitorConfig(**c["monitor"]) if isinstance(c.get("monitor"), dict) else monitor.OFF
+    if isinstance(c.get("monitor"), dict):  # and before recover_until_worse
+        c["monitor"] = MonitorConfig(**{"recover_until_worse": False, **c["monitor"]})
+    else:
+        c["monitor"] = monitor.OFF
     if isinstance(c.get("friction_set"), list):  # JSON keeps the tuple as a list
         c["friction_set"] = tuple(c["friction_set"])
     pp = c.get("prior_params")
