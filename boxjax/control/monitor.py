@@ -119,7 +119,8 @@ class MonitorConfig:
     # the model has the direction wrong here: with `recover_until_worse` no further recovery is sent in
     # the episode (the stop waits out `stop_timeout`). Without it, recoveries go on while the model
     # predicts a gain: a light box recovered from 3.25 cm came to rest at 3.29 cm instead of 3.10, and the
-    # next recovery, predicted to take it 1 mm closer, crossed the limit (docs/results/faults.md, "Recovery").
+    # next recovery, predicted to take it 1 mm closer, crossed the limit (docs/results/faults.md,
+    # "Recoveries that leave the box further out").
     recover_until_worse: bool = True
     max_stops: int = 60  # the max_stops-th balance stop is final
     stop_timeout: int = 100  # control steps (5 s) a stop may last without resuming before it is final
