@@ -436,3 +436,18 @@ def compensate(model, window, belt_speed, actions):
     predicted = model.rollout_sequence(window, belt_speed, actions)  # (D, 5)
     belt = jax.lax.scan(lambda b, a: (next_belt_speed(model, b, a), None), belt_speed, actions)[0]
     return jnp.concatenate([window, predicted.astype(window.dtype)])[-window.shape[0] :], belt
+
+
+def compensate_held(model, window, belt_speed, actions, compensated, withheld=1.0):
+    """The window `compensate` gives (`compensated`, from the same window, belt speeds and `actions`) with
+    the box's pose moved back by the fraction `withheld` of the drag the model predicts from the carriage
+    steps in flight: at 1 the box as if they had not dragged it at all (the box rolled out over `actions`
+    with their carriage steps withheld), the carriages always where `compensated` has them. With
+    `compensate`'s window it bounds the prediction's least certain part over the loop's delay: how far a
+    carriage moved under the box drags it (the monitor's `drag_bound`). D = 0 returns `compensated`."""
+    if actions.shape[0] == 0:
+        return compensated
+    compensated = jnp.asarray(compensated)
+    undragged, _ = compensate(model, window, belt_speed, jnp.asarray(actions).at[:, 2:].set(0.0))
+    held = compensated + withheld * (undragged.astype(compensated.dtype) - compensated)
+    return held.at[:, :2].set(compensated[:, :2])

@@ -432,3 +432,97 @@ def test_carriage_travel_in_flight_widens_the_margin_by_the_drags_uncertainty():
         m.decide(2, np.zeros(4), _check(0.026), 0.0, 0, moving)
         assert m.stopped == stops, (drag_std, second)
         assert m.log[2][5] == pytest.approx((STEP + second[2]) ** 2)
+
+
+def test_the_held_compensation_keeps_the_box_where_the_carriage_moves_would_have_dragged_it():
+    """`planning.compensate_held`: the same present as `compensate` for the carriages and the belts, the
+    box predicted without the drag of the carriage steps in flight: with both carriages stepping the same
+    way under a box at rest, the model drags the box along, the held prediction leaves it (the drag is all
+    the box's motion here), and with no carriage step in flight the two are the same window."""
+    prior = make_prior(massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box))
+    window = planning.initial_window(_state(y=0.01))
+    belt = jnp.zeros(2)
+    acts = jnp.asarray([[0.0, 0.0, -STEP, -STEP]] * 2, jnp.float32)
+    w, _ = planning.compensate(prior, window, belt, acts)
+    held = planning.compensate_held(prior, window, belt, acts, w)
+    np.testing.assert_allclose(np.asarray(held[:, :2]), np.asarray(w[:, :2]))  # the carriages moved
+    assert float(w[-1, geometry.P1]) == pytest.approx(-0.10 - 2 * STEP, abs=2e-3)
+    dragged = float(w[-1, geometry.Y]) - 0.01
+    assert dragged < -0.3 * 2 * STEP  # the model has the box follow the carriages
+    assert float(held[-1, geometry.Y]) == pytest.approx(0.01, abs=1e-4)  # held: the box stays
+    # so the box's offset from the middle is larger held: the carriages' middle moved away from it
+    assert float(geometry.balance_error(held[-1])) > float(geometry.balance_error(w[-1])) + 0.005
+    half = planning.compensate_held(prior, window, belt, acts, w, 0.5)  # half the drag withheld
+    np.testing.assert_allclose(
+        float(half[-1, geometry.Y]), 0.5 * float(w[-1, geometry.Y] + held[-1, geometry.Y])
+    )
+    belts_only = acts.at[:, 2:].set(0.0).at[:, :2].set(0.1)  # no carriage step: the same window
+    w2, _ = planning.compensate(prior, window, belt, belts_only)
+    np.testing.assert_allclose(
+        np.asarray(planning.compensate_held(prior, window, belt, belts_only, w2)), np.asarray(w2), atol=1e-7
+    )
+    assert planning.compensate_held(prior, window, belt, jnp.zeros((0, 4)), window) is window
+
+
+def test_the_drag_bound_checks_the_worse_of_the_dragged_and_the_held_present():
+    """`MonitorConfig.drag_bound`: the check from two windows is the worse of the two checks, field by
+    field, and from the same window twice it is the one-window check."""
+    prior = make_prior(massdist.voxel_masses(massdist.named("A", CFG.box), CFG.box))
+    belt = jnp.zeros(2)
+    action = jnp.asarray([0.1, -0.1, 0.0, 0.0], jnp.float32)
+    dragged = planning.initial_window(_state(y=0.01))
+    held = planning.initial_window(_state(y=0.025))  # the carriages' middle moved away from the box
+    one = monitor.to_host(monitor.check(CFG, prior, dragged, belt, action, 10))
+    other = monitor.to_host(monitor.check(CFG, prior, held, belt, action, 10))
+    both = monitor.to_host(monitor.check(CFG, prior, dragged, belt, action, 10, held=held))
+    assert float(both.now) == pytest.approx(0.025, abs=1e-6)
+    assert float(both.go) == pytest.approx(max(float(one.go), float(other.go)), abs=1e-6)
+    assert float(both.go) > float(one.go) + 0.01
+    assert float(both.stop) >= max(float(one.stop), float(other.stop)) - 1e-6
+    same = monitor.to_host(monitor.check(CFG, prior, dragged, belt, action, 10, held=dragged))
+    for a, b in zip(same, one, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-7)
+    stacked = planning.stack([prior, prior])  # batched: each box's own
+    two = lambda x: jnp.stack([x, x])  # noqa: E731
+    cb = monitor.check_batch(CFG, stacked, two(dragged), two(belt), two(action), 10, held=two(held))
+    for a, b in zip(monitor.to_host(cb, 1), both, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monkeypatch):
+    """With `drag_bound` and a late loop, `run_episode` and the batched `run_episodes` both check from the
+    held present as well (the carriages where the model's present has them); with no delay, from the
+    model's alone."""
+    from boxjax.control import batch, episode
+    from boxjax.control.config import ControllerConfig
+    from boxjax.planners.sampling import SamplingOptions
+    from boxjax.sim.faults import Faults
+
+    seen = []
+
+    def spy(real):
+        def check(cfg, model, window, belt, action, horizon, backup="best", held=None):
+            seen.append(None if held is None else (np.asarray(window), np.asarray(held)))
+            return real(cfg, model, window, belt, action, horizon, backup, held)
+
+        return check
+
+    monkeypatch.setattr(monitor, "check", spy(monitor.check))
+    monkeypatch.setattr(monitor, "check_batch", spy(monitor.check_batch))
+    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0), monitor=MonitorConfig(drag_bound=1.0))
+    box, key = massdist.named("A", CFG.box), jax.random.PRNGKey(3)
+    for late in (Faults(obs_latency=2), Faults()):
+        for run in (
+            lambda f: episode.run_episode(CFG, box, key, ctrl=ctrl, max_steps=55, faults=f),
+            lambda f: batch.run_episodes(CFG, [box], [key], ctrl=ctrl, max_steps=55, faults=f),
+        ):
+            seen.clear()
+            run(late)
+            assert seen, "the monitor checked nothing"
+            if not late.obs_latency:
+                assert all(s is None for s in seen)
+                continue
+            for window, held in seen:
+                w, h = window.reshape(-1, *window.shape[-2:]), held.reshape(-1, *held.shape[-2:])
+                np.testing.assert_array_equal(h[:, :, :2], w[:, :, :2])  # the same carriages
+            assert any(not np.allclose(h, w) for w, h in seen)  # and somewhere another box pose

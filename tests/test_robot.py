@@ -432,3 +432,56 @@ def test_the_monitor_of_a_loop_with_pose_noise_assumes_its_filters_uncertainty()
     RobotLoop(fixed, pose_noise=(3.0, 1.5))
     assert fixed.sigma == 0.002  # a sigma given is kept
     assert RobotLoop(lambda obs: np.zeros(4)).y_std() == 0.0
+
+
+def test_a_loop_late_by_two_steps_bounds_the_drag_its_model_counts_on():
+    """Carriages moved away from a box, frames two steps late, and a world that does not drag the box
+    (friction lower than the model's): a model in which the box follows the carriages predicts it
+    centred, so without the bound the monitor stops only once the late frames show the box at the limit;
+    with `drag_bound` the loop gives the monitor the present without that drag too (`RobotLoop.held`),
+    and it stops before 3.2 cm."""
+    from typing import NamedTuple
+
+    import jax.numpy as jnp
+
+    from boxjax import DEFAULT, planning
+    from boxjax.control.monitor import MonitorConfig
+    from boxjax.robot import PlannerStep
+
+    class Following(NamedTuple):  # a model whose box follows the carriages' middle exactly
+        def rollout_sequence(self, window, belt_speed, actions):
+            dp = jnp.cumsum(actions[:, 2:], axis=0)
+            move = jnp.concatenate([dp, jnp.zeros((len(dp), 1)), dp.mean(1, keepdims=True), 0 * dp[:, :1]], 1)
+            return window[-1] + move
+
+        def stability_margin(self, s):
+            return jnp.float32(1.0)
+
+        @property
+        def gripper(self):
+            return CFG.gripper
+
+    step_m, lag, dt = CFG.gripper.max_position_step, 2, CFG.gripper.control_dt
+    away = np.array([0.0, 0.0, -step_m, -step_m])
+    planner = planning.Planner("away", lambda obs: None, lambda key, model, obs, st: (away, st, None))
+    first_stop = {}
+    for bound in (0.0, 1.0):
+        plan = PlannerStep(
+            planner, Following(), jax.random.PRNGKey(0), delay=lag, monitor=MonitorConfig(drag_bound=bound)
+        )
+        loop = RobotLoop(plan, AdapterConfig(max_observation_age=0.3), latency_model=Following())
+        p = [np.array([-0.10, 0.10])] * lag  # the carriages' true positions, frame by frame
+        for t in range(lag, 60):
+            f = t - lag
+            s = p[f]
+            tk = tracking(0.0, 0.0, stamp=100.0 + dt * f)  # the box stays at y = 0
+            js = joints(right=-s[0], left=s[1], stamp=100.0 + dt * f)
+            _, _, status = loop.step(tk, js, 100.0 + dt * t + 1e-3)
+            offset = -0.5 * p[-1].sum()  # the box's true offset from the middle as this action applies
+            if plan.stopped:
+                first_stop[bound] = offset
+                break
+            p.append(p[-1] + np.asarray(status["action"])[2:])
+    limit = DEFAULT.task.balance_limit
+    assert first_stop[0.0] > limit - 1e-9, first_stop  # the stop comes once the late frames show it: lost
+    assert first_stop[1.0] < 0.8 * limit, first_stop  # bounded: stopped while the stop can still save it

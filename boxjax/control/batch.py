@@ -103,6 +103,12 @@ def _batched_compensate():
 
 
 @lru_cache(maxsize=1)
+def _batched_compensate_held():
+    """`planning.compensate_held` vmapped over boxes and jitted."""
+    return jax.jit(jax.vmap(planning.compensate_held))
+
+
+@lru_cache(maxsize=1)
 def _batched_predict_first():
     """`planning.predict_first` vmapped over boxes and jitted (the filters' predictions of the next frame)."""
     return jax.jit(jax.vmap(planning.predict_first))
@@ -358,6 +364,7 @@ def run_episodes(
         width = -(-min(slots, len(queue)) // n_dev) * n_dev  # a multiple of the devices: equal shards
         windows = {b: controller.first_window(np.stack([s for s, _ in rec[b].seen])) for b in queue}
         compensate_b = _batched_compensate()
+        compensate_held_b = _batched_compensate_held()
         predict_b = _batched_predict_first()
 
         def measured(boxes_: list[int]) -> tuple[np.ndarray, np.ndarray]:
@@ -418,9 +425,18 @@ def run_episodes(
             actions = np.asarray(actions, np.float64)
             ms = 1e3 * (time.perf_counter() - t0)
             if ctrl.monitor.enabled:  # the runtime safety monitor, all slots in one call
+                held = None
+                if ctrl.monitor.drag_bound and delay:  # the boxes not dragged over the delay
+                    use = [b if b is not None else live[0] for b in slot_box]
+                    w, belt = measured(use)
+                    flying = np.stack([controller.in_flight(rec[b].sent, delay) for b in use])
+                    bound = jnp.full(len(use), ctrl.monitor.drag_bound, jnp.float32)
+                    held = compensate_held_b(
+                        model_b, put(w), put(belt), put(flying), obs_b.window, put(bound)
+                    )
                 checks = monitor.check_batch(
                     cfg, model_b, obs_b.window, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
-                    ctrl.monitor.horizon, ctrl.monitor.backup,
+                    ctrl.monitor.horizon, ctrl.monitor.backup, held,
                 )  # fmt: skip
                 checks, belts = monitor.to_host(checks), np.asarray(obs_b.belt_speed)
                 newest = np.asarray(obs_b.window[:, -1])  # predicted for when the actions apply

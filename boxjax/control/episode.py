@@ -63,6 +63,7 @@ def _controller_data(seen, sent) -> dict:
 
 
 _compensate = jax.jit(planning.compensate)
+_compensate_held = jax.jit(planning.compensate_held)
 
 
 def in_flight(sent: list, n: int) -> np.ndarray:
@@ -307,6 +308,12 @@ def run_episode(
             if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
                 raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
             if mon is not None:  # the runtime safety monitor: send the action, or stop
+                held = None
+                if ctrl.monitor.drag_bound and world.delay:  # the box not dragged over the delay
+                    w = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
+                    b = np.asarray(seen[-1][1], np.float32)
+                    flying = in_flight(sent, world.delay)
+                    held = _compensate_held(model, w, b, flying, obs.window, ctrl.monitor.drag_bound)
                 check = monitor.check(
                     cfg,
                     model,
@@ -315,6 +322,7 @@ def run_episode(
                     jnp.asarray(a, jnp.float32),
                     ctrl.monitor.horizon,
                     ctrl.monitor.backup,
+                    held,
                 )
                 a = mon.decide(
                     len(actions),

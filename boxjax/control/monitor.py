@@ -36,7 +36,9 @@ A stop is a state, not an end:
   come back (within `stop_timeout` steps) and does not count toward `max_stops`.
 
 The monitor checks from the state at which the action will apply: the controller's estimate, predicted
-over the loop's delays (sensor and action latency) by `planning.compensate`.
+over the loop's delays (sensor and action latency) by `planning.compensate`. That prediction's least
+certain part is the drag of the carriage moves in flight on the box; with `drag_bound` the check is also
+made from the same present without (part of) that drag (`planning.compensate_held`), the worse counting.
 
 The check is one jitted, vmappable computation (`predicted_errors`: four rollouts of `horizon` steps); the
 state machine around it is host-side Python (`Monitor`, one per episode), the same in `run_episode` and
@@ -107,6 +109,13 @@ class MonitorConfig:
     # of that carriage under that box. So the carriage travel in flight (the last `delay` actions, summed
     # per carriage) adds drag_std x travel to the prediction's std over the delay. 0: off.
     drag_std: float = 0.0
+    # The carriages' drag over the delay, bounded instead: the check is made from two predictions of the
+    # present, the model's and one in which the carriage moves in flight drag the box `drag_bound` less
+    # than the model predicts (1: not at all; `planning.compensate_held`), and every predicted error is
+    # the worse of the two. It widens nothing when the carriages move the middle toward the box; it
+    # catches a turn that moves them away from the box, unseen, counting on a drag the world does not
+    # give. 0: off.
+    drag_bound: float = 0.0
     # Recovery: a balance stop at rest above `resume_below` sends the planner's action (then the stop
     # `Check.go_stop`: belts to rest, carriages held) when the model predicts it brings the box at least
     # `recover_gain` (m) closer to the middle and never above `stop_at` (with the estimate's margin), so
@@ -151,6 +160,8 @@ class MonitorConfig:
         for name in ("k_sigma", "delay_std", "miss_sigmas", "recover_gain", "drag_std"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
+        if not (isinstance(self.drag_bound, int | float) and 0 <= self.drag_bound <= 1):
+            bad("drag_bound", "must be a fraction of the model's drag in [0, 1]")
         if self.k_delay is not None and not (math.isfinite(self.k_delay) and self.k_delay >= 0):
             bad("k_delay", "must be a number >= 0 or None")
         for name in ("max_stops", "stop_timeout", "stale_steps", "miss_window"):
@@ -214,22 +225,25 @@ class Check(NamedTuple):
 
 
 def predicted_errors(
-    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best"
+    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None
 ) -> Check:
     """The largest balance error, now (the window's newest state) and over `horizon` predicted steps, of
     (a) `action` followed by a stop and (b) a stop at once, each with the stop of `backup_set` predicted
-    safest, those stops, and the recovery's prediction (a `Check`)."""
+    safest, those stops, and the recovery's prediction (a `Check`). `held`: a second window for the same
+    present (`planning.compensate_held`: the carriage moves over the delay not dragging the box); every
+    error is then the worse of the two windows' (`MonitorConfig.drag_bound`)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
+    starts = window[None] if held is None else jnp.stack([window, held.astype(window.dtype)])
     rollout = jax.vmap(model.rollout_sequence, in_axes=(None, None, 0))
-    states = rollout(window, belt_speed, jnp.concatenate([go, backups]))  # (2V, horizon, 5)
-    errors = jax.vmap(jax.vmap(geometry.balance_error))(states)
+    states = jax.vmap(lambda w: rollout(w, belt_speed, jnp.concatenate([go, backups])))(starts)
+    errors = jax.vmap(jax.vmap(jax.vmap(geometry.balance_error)))(states)  # (windows, 2V, horizon)
     errors = jnp.where(jnp.isfinite(errors), errors, jnp.inf)  # a model that diverges is not believed safe
-    errors = errors.reshape(2, -1, horizon)  # (go | stop, V, horizon)
+    errors = jnp.max(errors, axis=0).reshape(2, -1, horizon)  # (go | stop, V, horizon)
     worst = jnp.max(errors, axis=2)  # (go | stop, V)
     go_b, stop_b = jnp.argmin(worst[0]), jnp.argmin(worst[1])
-    now = geometry.balance_error(window[-1])
+    now = jnp.max(jax.vmap(geometry.balance_error)(starts[:, -1]))
     return Check(
         go=jnp.maximum(worst[0, go_b], now),
         stop=jnp.maximum(worst[1, stop_b], now),
@@ -242,17 +256,23 @@ def predicted_errors(
 
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
-def check(cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best") -> Check:
+def check(
+    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None
+) -> Check:
     """Jitted `predicted_errors`."""
-    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup)
+    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup, held)
 
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
-def check_batch(cfg: Config, models, windows, belt_speeds, actions, horizon: int, backup: str = "best"):
+def check_batch(
+    cfg: Config, models, windows, belt_speeds, actions, horizon: int, backup: str = "best", held=None
+):
     """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's)."""
-    return jax.vmap(partial(predicted_errors, cfg, horizon=horizon, backup=backup))(
-        models, windows, belt_speeds, actions
-    )
+    one = partial(predicted_errors, cfg, horizon=horizon, backup=backup)
+    if held is None:
+        return jax.vmap(one)(models, windows, belt_speeds, actions)
+    both = jax.vmap(lambda m, w, b, a, h: one(m, w, b, a, held=h))
+    return both(models, windows, belt_speeds, actions, held)
 
 
 def to_host(c: Check, k: int | None = None) -> Check:

@@ -63,6 +63,7 @@ from boxjax.sim.faults import Faults
 LOOP_STOP_REASONS = (*STOP_REASONS, "no_observation", "invalid_observation")
 MAX_PREDICTED_STEPS = 20  # the longest latency (control steps) the loop predicts over (as `Faults`' bound)
 _compensate = jax.jit(planning.compensate)
+_compensate_held = jax.jit(planning.compensate_held)
 
 PlanStep = Callable[[planning.Observation], Any]  # observation -> action (4,) (v1, v2, dp1, dp2)
 
@@ -77,8 +78,10 @@ class PlannerStep:
     estimate's y the monitor assumes (the robot's vision pipeline's; a `RobotLoop` given the pose noise
     links it to its filter's; the loop's staleness stops are the adapter's); `delay`: the control steps
     the loop predicts its observations over (`RobotLoop(latency_model=...)`), whose prediction error the
-    monitor adds (`MonitorConfig.delay_std`). `stopped` and
-    `monitor.record()` say what it did."""
+    monitor adds (`MonitorConfig.delay_std`); a `RobotLoop` with a `latency_model` also gives it the
+    present predicted without the drag of the carriage moves in flight (`held`, for
+    `MonitorConfig.drag_bound`; consumed by the next call). `stopped` and `monitor.record()` say what it
+    did."""
 
     def __init__(
         self,
@@ -96,6 +99,7 @@ class PlannerStep:
         self.cfg, self.t = cfg, 0
         self.sigma: float | Callable[[], float] = sigma if callable(sigma) else float(sigma)
         self.monitor = Monitor(cfg, monitor, delay) if monitor.enabled else None
+        self.held = None  # the next call's undragged present (W, 5), set by the loop
 
     @property
     def stopped(self) -> bool:
@@ -107,6 +111,7 @@ class PlannerStep:
         self.key, key = jax.random.split(self.key)
         a, self.plan_state, _ = self.planner.optimize(key, self.model, obs, self.plan_state)
         a = np.asarray(a, np.float64)
+        held, self.held = self.held, None
         if self.monitor is not None and np.all(np.isfinite(a)):
             check = monitor_check(
                 self.cfg,
@@ -116,6 +121,7 @@ class PlannerStep:
                 np.asarray(a, np.float32),
                 self.monitor.m.horizon,
                 self.monitor.m.backup,
+                None if held is None else np.asarray(held, np.float32),
             )
             sigma = self.sigma() if callable(self.sigma) else self.sigma
             a = self.monitor.decide(self.t, a, to_host(check), sigma, 0, np.asarray(obs.belt_speed))
@@ -251,6 +257,8 @@ class RobotLoop:
         if reason is not None:
             return (*self._stop(), {"safe_stop": True, "reason": reason, "observation": seen, "error": None})
         window, belt, ahead = self.predicted(now)
+        if isinstance(self.plan_step, PlannerStep):
+            self.plan_step.held = self.held(now, window)
         action = self.plan_step(planning.observation(window, belt, self.target_yaw))
         velocity, carriage, status = commands_from_action(action, self._p_target, now, self._stamp, self.cfg)
         self._p_target = carriage_targets(carriage, self.cfg)
@@ -263,18 +271,46 @@ class RobotLoop:
         with `latency_model` (`planning.compensate`) through the actions sent since; steps 0 without one."""
         window = planning.check_window(self.window)
         belt = np.asarray(self._belt_speed, np.float64)
-        steps = round((now - self._stamp) / self.cfg.gripper.control_dt)
-        steps = min(max(steps, 0), MAX_PREDICTED_STEPS)
+        steps = self._steps(now)
         if self.latency_model is None or steps == 0:
             return window, belt, 0
-        flying = ([np.zeros(4)] * steps + self._sent)[-steps:]
         w, b = _compensate(
             self.latency_model,
             np.asarray(window, np.float32),
             np.asarray(belt, np.float32),
-            np.asarray(flying, np.float32),
+            self._flying(steps),
         )
         return np.asarray(w, np.float64), np.asarray(b, np.float64), steps
+
+    def held(self, now: float, predicted: np.ndarray) -> np.ndarray | None:
+        """(W, 5) the window `predicted` gave for `now` with the box moved back by the monitor's
+        `drag_bound` of the drag the carriage moves in flight were predicted to give it
+        (`planning.compensate_held`); None where nothing is predicted or the plan step's monitor bounds no
+        drag."""
+        step = self.plan_step
+        bound = step.monitor.m.drag_bound if isinstance(step, PlannerStep) and step.monitor else 0.0
+        steps = self._steps(now)
+        if not bound or self.latency_model is None or steps == 0:
+            return None
+        w = planning.check_window(self.window)
+        held = _compensate_held(
+            self.latency_model,
+            np.asarray(w, np.float32),
+            np.asarray(self._belt_speed, np.float32),
+            self._flying(steps),
+            np.asarray(predicted, np.float32),
+            bound,
+        )
+        return np.asarray(held, np.float64)
+
+    def _steps(self, now: float) -> int:
+        """Whole control steps from the newest pose's stamp to `now` (0 to `MAX_PREDICTED_STEPS`)."""
+        steps = round((now - self._stamp) / self.cfg.gripper.control_dt)
+        return min(max(steps, 0), MAX_PREDICTED_STEPS)
+
+    def _flying(self, steps: int) -> np.ndarray:
+        """(steps, 4) float32: the last `steps` actions sent (rest before the first)."""
+        return np.asarray(([np.zeros(4)] * steps + self._sent)[-steps:], np.float32)
 
     def _remember(self, action) -> None:
         self._sent = [*self._sent, np.asarray(action, np.float64)][-MAX_PREDICTED_STEPS:]
