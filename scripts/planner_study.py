@@ -11,8 +11,8 @@ planner=simulator`: e.g. `--simulator start=planar` plans with MuJoCo from what 
 shows); `--safe-family F` draws the safe boxes from family F (as `boxjax evaluate --safe-family`).
 
 `--monitor KEY=VALUE` sets `control.monitor.MonitorConfig` fields (e.g. `--monitor
-recover_until_worse=false`), `--fault KEY=VALUE` `sim.faults.Faults` fields (e.g. `--fault obs_latency=2
---fault friction=0.4`).
+recover_until_worse=false`, `--monitor 'prior_params={"carriage_omega": 30}'`), `--fault KEY=VALUE`
+`sim.faults.Faults` fields (e.g. `--fault obs_latency=2 --fault friction=0.4`).
 
 `--mixture` (two or more) plans over a mixture of physics priors, one per setting
 (`ControllerConfig.prior_params` as a tuple, `planning.Mixture`), each candidate scored by its mean cost
@@ -104,7 +104,10 @@ def main(argv=None) -> dict:
                 raise ValueError(
                     "give the monitor's fields with --monitor KEY=VALUE, not --controller monitor="
                 )
-            fields["monitor"] = MonitorConfig(**_pairs(args.monitor, "monitor"))
+            mon = _pairs(args.monitor, "monitor")
+            if isinstance(mon.get("prior_params"), dict):  # the monitor's own prior: PriorParams fields
+                mon["prior_params"] = PriorParams(**mon["prior_params"])
+            fields["monitor"] = MonitorConfig(**mon)
         ctrl = ControllerConfig(
             sampling=SamplingOptions(**_pairs(args.sampling, "sampling")), prior_params=prior_params, **fields
         )

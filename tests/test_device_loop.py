@@ -94,3 +94,36 @@ def test_mjx_worlds_behind_the_native_batch_interface_pause_and_refuse_bad_actio
             faults=Faults(obs_noise_mm=3.0),
             backend="mjx",
         )
+
+
+@pytest.mark.slow
+def test_the_monitor_checks_with_its_own_prior_on_the_device(monkeypatch):
+    """`MonitorConfig.prior_params` on the device: the turn's program checks with the slot's own prior
+    (recorded as the program is traced), and the episode ends with an outcome."""
+    from boxjax.control import monitor
+    from boxjax.control.monitor import MonitorConfig
+    from boxjax.prior import PriorParams
+
+    own = PriorParams(carriage_omega=30.0, slip_eps=0.02)
+    ctrl = ControllerConfig(
+        sampling=SamplingOptions(gradient_steps=0), monitor=MonitorConfig(prior_params=own)
+    )
+    traced = []
+    real = monitor.predicted_errors
+
+    def spy(cfg_, model, *args, **kwargs):
+        traced.append(model.params)
+        return real(cfg_, model, *args, **kwargs)
+
+    monkeypatch.setattr(monitor, "predicted_errors", spy)
+    res = device_loop.run_episodes(
+        cfg,
+        [massdist.named("A", cfg.box)],
+        [jax.random.PRNGKey(0)],
+        ctrl=ctrl,
+        slots=1,
+        block=10,
+        max_steps=80,
+    )
+    assert traced and all(p == own for p in traced)
+    assert outcome(res[0].summary) is not None

@@ -15,6 +15,7 @@ from boxjax.cli import main
 from boxjax.config import DEFAULT, TaskConfig
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import run_episode
+from boxjax.control.monitor import MonitorConfig
 from boxjax.experiments import evaluation as experiments
 
 CFG = DEFAULT
@@ -298,6 +299,11 @@ def test_controller_settings_round_trip():
     assert experiments.controller_from_settings(st).monitor.recover_until_worse
     del st["controller"]["monitor"]["recover_until_worse"]  # written before recoveries could end
     assert not experiments.controller_from_settings(st).monitor.recover_until_worse
+    own = ControllerConfig(  # the monitor's own prior and the drag bound travel too
+        monitor=MonitorConfig(prior_params=prior.PriorParams(carriage_omega=30.0), drag_bound=0.5)
+    )
+    st = json.loads(json.dumps(experiments.settings("oracle", own, 1, "gaussian")))
+    assert experiments.controller_from_settings(st) == own
 
 
 def test_the_controllers_prior_settings_reach_the_planners_model():

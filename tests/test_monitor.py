@@ -526,3 +526,62 @@ def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monke
                 w, h = window.reshape(-1, *window.shape[-2:]), held.reshape(-1, *held.shape[-2:])
                 np.testing.assert_array_equal(h[:, :, :2], w[:, :, :2])  # the same carriages
             assert any(not np.allclose(h, w) for w, h in seen)  # and somewhere another box pose
+
+
+def test_the_monitor_can_predict_with_its_own_prior_on_the_planners_belief(monkeypatch):
+    """`MonitorConfig.prior_params`: the check runs with a prior of those settings on the belief the
+    planner's prior is built on, in the one-box and the batched loops (the on-device loop: the slow test
+    in tests/test_device_loop.py); a model given as it is (a black box) has no belief, and the robot
+    loop's PlannerStep is given it: each said before any work."""
+    from boxjax import prior as prior_mod
+    from boxjax.control import batch, device_loop, episode
+    from boxjax.control.config import ControllerConfig
+    from boxjax.control.models import monitor_model, planning_model
+    from boxjax.planners.sampling import SamplingOptions
+    from boxjax.robot import PlannerStep
+    from boxjax.sim.faults import Faults
+
+    own = prior_mod.PriorParams(carriage_omega=30.0, slip_eps=0.02)
+    ctrl = ControllerConfig(
+        sampling=SamplingOptions(gradient_steps=0), monitor=MonitorConfig(prior_params=own)
+    )
+    box = massdist.named("A", CFG.box)
+    planner_prior = planning_model(CFG, ctrl, box)
+    mine = monitor_model(CFG, ctrl, box, planner_prior)
+    assert mine.params == own and planner_prior.params == prior_mod.PriorParams()
+    np.testing.assert_array_equal(np.asarray(mine.masses), np.asarray(planner_prior.masses))  # one belief
+    assert monitor_model(CFG, ControllerConfig(), box, planner_prior) is planner_prior
+
+    used = []
+
+    def spy(real):
+        def check(cfg, model, *args, **kwargs):
+            used.append(model.params)
+            return real(cfg, model, *args, **kwargs)
+
+        return check
+
+    monkeypatch.setattr(monitor, "check", spy(monitor.check))
+    monkeypatch.setattr(monitor, "check_batch", spy(monitor.check_batch))
+    key, late = jax.random.PRNGKey(3), Faults(obs_latency=2)
+    episode.run_episode(CFG, box, key, ctrl=ctrl, max_steps=50, faults=late)
+    batch.run_episodes(CFG, [box], [key], ctrl=ctrl, max_steps=50, faults=late)
+    assert used and all(p == own for p in used)
+
+    with pytest.raises(ValueError, match="black box"):
+        episode.run_episode(CFG, box, key, ctrl=ctrl, model=planner_prior)
+    with pytest.raises(ValueError, match="black box"):
+        batch.run_episodes(CFG, [box], [key], ctrl=ctrl, model=planner_prior)
+    assert device_loop.supports(ctrl) is None
+    rest = planning.Planner("rest", lambda obs: None, lambda k, m, obs, st: (np.zeros(4), st, None))
+    with pytest.raises(ValueError, match="monitor_model"):  # the robot loop's: given its model
+        PlannerStep(rest, planner_prior, key, monitor=ctrl.monitor)
+    used.clear()
+    from boxjax.robot import loop as robot_loop
+
+    monkeypatch.setattr(robot_loop, "monitor_check", spy(robot_loop.monitor_check))
+    step = PlannerStep(rest, planner_prior, key, monitor=ctrl.monitor, monitor_model=mine)
+    step(planning.observation(planning.initial_window(_state()), jnp.zeros(2), 1.57))
+    assert used == [own]
+    with pytest.raises(ConfigError, match="prior_params"):
+        MonitorConfig(prior_params={"carriage_omega": 30.0})

@@ -56,7 +56,7 @@ from boxjax.control import episode as controller
 from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig, for_delay
 from boxjax.control.episode import EpisodeResult
-from boxjax.control.models import planning_model
+from boxjax.control.models import monitor_model, planning_model
 from boxjax.control.monitor import Monitor
 from boxjax.control.world import World
 from boxjax.estimator.belief import decide
@@ -275,6 +275,9 @@ def run_episodes(
         raise ValueError(f"need at least one box and one key per box, got {B} boxes and {len(keys)} keys")
     if slots is not None and slots < 1:
         raise ValueError(f"slots must be >= 1, got {slots}")
+    if model is not None and ctrl.monitor.enabled and ctrl.monitor.prior_params is not None:
+        raise ValueError("the monitor's own prior (MonitorConfig.prior_params) needs a belief; a model given "
+                         "as it is (a black box) has none")  # fmt: skip
     if adapter is not None and ctrl.adapt_every < 1:
         raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
     if order not in ORDERS:
@@ -336,6 +339,8 @@ def run_episodes(
     # 2.-3. belief and decision per box; 4. the models of the boxes to turn
     queue: deque[int] = deque()
     models: dict[int, Any] = {}
+    own_monitor = ctrl.monitor.enabled and ctrl.monitor.prior_params is not None
+    mon_models: dict[int, Any] = {}  # the monitor's own priors (`MonitorConfig.prior_params`)
     for b in range(B):
         if lost[b]:
             finish(b, int(n_explore[b]), True)
@@ -352,6 +357,8 @@ def run_episodes(
             finish(b, int(n_explore[b]), False)
             continue
         models[b] = model if model is not None else planning_model(cfg, ctrl, belief, force_map, est)
+        if own_monitor:
+            mon_models[b] = monitor_model(cfg, ctrl, belief, None, force_map, est)
         queue.append(b)
     if order == "longest_first":  # a stable sort: ties (no belief) keep the given order
         queue = deque(sorted(queue, key=lambda b: -expected_length(cfg, decided[b][1])))
@@ -388,14 +395,17 @@ def run_episodes(
         first = queue[0]
         slot_box: list[int | None] = [None] * width
         model_b = put(stack([models[first]] * width))
+        mon_b = put(stack([mon_models[first]] * width)) if own_monitor else None
         plan_b = init_b(observations([first] * width, model_b))
         keys_b = put(jnp.stack([key_plan[first]] * width))
 
         def admit(k: int) -> None:
-            nonlocal model_b, plan_b, keys_b
+            nonlocal model_b, plan_b, keys_b, mon_b
             b = queue.popleft()
             slot_box[k] = b
             model_b = put(set_slot(model_b, k, models[b]))
+            if own_monitor:
+                mon_b = put(set_slot(mon_b, k, mon_models[b]))
             one = put(stack([models[b]] * n_dev)) if delay else None  # for the compensation only
             first_plan = jax.tree.map(lambda x: x[0], init_b(observations([b] * n_dev, one)))
             plan_b = put(set_slot(plan_b, k, first_plan))
@@ -425,21 +435,23 @@ def run_episodes(
             actions = np.asarray(actions, np.float64)
             ms = 1e3 * (time.perf_counter() - t0)
             if ctrl.monitor.enabled:  # the runtime safety monitor, all slots in one call
-                held = None
-                if ctrl.monitor.drag_bound and delay:  # the boxes not dragged over the delay
+                m_b = mon_b if own_monitor else model_b
+                seen_b, held = obs_b.window, None
+                if delay and (own_monitor or ctrl.monitor.drag_bound):
                     use = [b if b is not None else live[0] for b in slot_box]
                     w, belt = measured(use)
-                    flying = np.stack([controller.in_flight(rec[b].sent, delay) for b in use])
-                    bound = jnp.full(len(use), ctrl.monitor.drag_bound, jnp.float32)
-                    held = compensate_held_b(
-                        model_b, put(w), put(belt), put(flying), obs_b.window, put(bound)
-                    )
+                    flying = put(np.stack([controller.in_flight(rec[b].sent, delay) for b in use]))
+                    if own_monitor:  # its own model predicts over the delay too
+                        seen_b = compensate_b(m_b, put(w), put(belt), flying)[0]
+                    if ctrl.monitor.drag_bound:  # the boxes not dragged over the delay
+                        bound = jnp.full(len(use), ctrl.monitor.drag_bound, jnp.float32)
+                        held = compensate_held_b(m_b, put(w), put(belt), flying, seen_b, put(bound))
                 checks = monitor.check_batch(
-                    cfg, model_b, obs_b.window, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
+                    cfg, m_b, seen_b, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
                     ctrl.monitor.horizon, ctrl.monitor.backup, held,
                 )  # fmt: skip
                 checks, belts = monitor.to_host(checks), np.asarray(obs_b.belt_speed)
-                newest = np.asarray(obs_b.window[:, -1])  # predicted for when the actions apply
+                newest = np.asarray(seen_b[:, -1])  # predicted for when the actions apply
             full = np.zeros((B, 4))
             active = np.zeros(B, bool)
             for k, b in enumerate(slot_box):
@@ -477,6 +489,7 @@ def run_episodes(
                     finish(b, int(n_explore[b]), False)
                     slot_box[k] = None
                     models.pop(b)
+                    mon_models.pop(b, None)
                     if queue:
                         admit(k)
     return results  # type: ignore[return-value]

@@ -44,7 +44,7 @@ from boxjax.control import batch, monitor, monitor_pure
 from boxjax.control import episode as controller
 from boxjax.control.config import ControllerConfig
 from boxjax.control.episode import EpisodeResult
-from boxjax.control.models import planning_model
+from boxjax.control.models import monitor_model, planning_model
 from boxjax.estimator import explore, guard_pure
 from boxjax.estimator.belief import decide
 from boxjax.planners.registry import make_planner
@@ -91,6 +91,7 @@ class Slot(NamedTuple):
     key: jax.Array
     mon: monitor_pure.MonitorState
     model: Any  # the physics prior on the box's belief
+    mon_model: Any  # the monitor's own prior on it (`MonitorConfig.prior_params`), or None: `model`
     active: jax.Array  # () bool: the slot's box is turning
     nonfinite: jax.Array  # () bool: the planner produced a non-finite action (the box ended there)
 
@@ -144,14 +145,18 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
             mon, sent = slot.mon, a
             ev = monitor_pure.Events(*(jnp.zeros((), bool),) * 4)
             if settings.enabled:
+                m_model = slot.model if slot.mon_model is None else slot.mon_model
                 check = monitor.predicted_errors(
-                    cfg, slot.model, obs.window, obs.belt_speed, a, settings.horizon, settings.backup
+                    cfg, m_model, obs.window, obs.belt_speed, a, settings.horizon, settings.backup
                 )
                 mon, sent, ev = monitor_pure.decide(cfg, settings, slot.mon, a, check, 0.0, obs.belt_speed)
             state = env.pure_step(slot.state, sent)
             window = jnp.concatenate([slot.window[1:], state.s[None]])
             ended = state.done | (state.t >= max_steps) | mon.ended | ~finite
-            new = Slot(state, window, plan, pair[0], mon, slot.model, ~ended, slot.nonfinite | ~finite)
+            new = slot._replace(
+                state=state, window=window, plan=plan, key=pair[0], mon=mon, active=~ended,
+                nonfinite=slot.nonfinite | ~finite,
+            )  # fmt: skip
             rec = {
                 "s": state.s,
                 "belt_speed": state.belt_speed,
@@ -321,7 +326,7 @@ def run_episodes(
         explored.append((idx[: min(width, B - lo)], states))
 
     # 2. the belief and the decision, on the host; the boxes to turn, longest expected first
-    queue, models = [], {}
+    queue, models, mon_models = [], {}, {}
     for b in range(B):
         if boxes[b].final["done"]:  # lost while exploring (even as the guard tripped): a failure
             decided[b] = ({}, None, None)
@@ -339,6 +344,8 @@ def run_episodes(
             finish(b, False)
             continue
         models[b] = planning_model(cfg, ctrl, belief, force_map, est)
+        if ctrl.monitor.enabled:
+            mon_models[b] = monitor_model(cfg, ctrl, belief, None, force_map, est)
         queue.append(b)
     queue.sort(key=lambda b: -batch.expected_length(cfg, decided[b][1]))  # stable: ties keep the order
     where = {b: (chunk, k) for chunk, (idx, _) in enumerate(explored) for k, b in enumerate(idx)}
@@ -351,7 +358,7 @@ def run_episodes(
         obs = planning.observation(window, state.belt_speed, state.target_yaw)
         mon = monitor_pure.init(ctrl.monitor)
         f = jnp.zeros((), bool)
-        return Slot(state, window, init_plan(obs), split[b][1], mon, models[b], ~f, f)
+        return Slot(state, window, init_plan(obs), split[b][1], mon, models[b], mon_models.get(b), ~f, f)
 
     if queue:
         waiting = list(queue)
@@ -392,6 +399,7 @@ def run_episodes(
                     mon = _MonitorRecord(ev["stop"], ev["resume"], ev["recovery"], ev["stopping"], stopped)
                 finish(b, False, mon)
                 models.pop(b)
+                mon_models.pop(b, None)
                 slot_box[k] = waiting.pop(0) if waiting else None
                 if slot_box[k] is not None:  # (an ended slot is already inactive)
                     batch_slots = put(batch.set_slot(batch_slots, k, slot_of(slot_box[k])))

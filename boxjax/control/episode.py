@@ -22,7 +22,7 @@ from boxjax import geometry, massdist, planning, task
 from boxjax.config import Config
 from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig, for_delay
-from boxjax.control.models import planning_model
+from boxjax.control.models import monitor_model, planning_model
 from boxjax.control.monitor import Monitor
 from boxjax.control.monitor import crossing as monitor_crossing
 from boxjax.control.world import World
@@ -215,6 +215,9 @@ def run_episode(
         The controller then sees the pose through its filter (`ctrl.pose_filter`), never the simulator's
         state; the episode's outcome is the true world's. Native backend only.
     """
+    if model is not None and ctrl.monitor.enabled and ctrl.monitor.prior_params is not None:
+        raise ValueError("the monitor's own prior (MonitorConfig.prior_params) needs a belief; a model given "
+                         "as it is (a black box) has none")  # fmt: skip
     if adapter is not None and ctrl.adapt_every < 1:
         raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
     if faults.any and backend != "native":
@@ -272,6 +275,8 @@ def run_episode(
         # 4. physics-prior MPC
         if model is None:
             model = planning_model(cfg, ctrl, belief, force_map, est)
+        # the monitor's own prior, if it has one (else it predicts with the planner's model as it is now)
+        mon_model = monitor_model(cfg, ctrl, belief, None, force_map, est) if ctrl.monitor.enabled else None
         mpc = make_planner(cfg, for_delay(cfg, ctrl, world.delay))  # slower when the loop is late
         window = first_window(exploration["s"])
         # The simulator reference simulates the believed box when asked to, else the env's own.
@@ -308,16 +313,21 @@ def run_episode(
             if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
                 raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
             if mon is not None:  # the runtime safety monitor: send the action, or stop
-                held = None
-                if ctrl.monitor.drag_bound and world.delay:  # the box not dragged over the delay
+                seen_w, held = obs.window, None
+                own = mon_model is not None  # the monitor's own model predicts over the delay too
+                m_model = mon_model if own else model
+                if world.delay and (own or ctrl.monitor.drag_bound):
                     w = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
                     b = np.asarray(seen[-1][1], np.float32)
                     flying = in_flight(sent, world.delay)
-                    held = _compensate_held(model, w, b, flying, obs.window, ctrl.monitor.drag_bound)
+                    if own:
+                        seen_w = _compensate(mon_model, w, b, flying)[0]
+                    if ctrl.monitor.drag_bound:  # the box not dragged over the delay
+                        held = _compensate_held(m_model, w, b, flying, seen_w, ctrl.monitor.drag_bound)
                 check = monitor.check(
                     cfg,
-                    model,
-                    obs.window,
+                    m_model,
+                    seen_w,
                     obs.belt_speed,
                     jnp.asarray(a, jnp.float32),
                     ctrl.monitor.horizon,
@@ -332,7 +342,7 @@ def run_episode(
                     world.stale,
                     np.asarray(obs.belt_speed),
                     measured=window[-1],
-                    predicted=np.asarray(obs.window[-1]),
+                    predicted=np.asarray(seen_w[-1]),
                 )
             if ctrl.observer_gain > 0:
                 predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)

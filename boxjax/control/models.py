@@ -50,3 +50,17 @@ def planning_model(
             "the oracle's one true distribution has none"
         )
     return planning.Ensemble(planning.stack([on(massdist.validate(m, cfg.box), settings) for m in members]))
+
+
+def monitor_model(cfg: Config, ctrl: ControllerConfig, belief, model, force_map=None, est=None):
+    """The model the runtime safety monitor predicts with: `model` (the planner's; None where the caller
+    keeps it), or with `ctrl.monitor.prior_params` a physics prior of those settings on the same belief."""
+    params = ctrl.monitor.prior_params
+    if params is None:
+        return model
+    if belief is None:
+        raise ValueError(
+            "the monitor's own prior (MonitorConfig.prior_params) needs a belief; a black box has none"
+        )
+    own = dataclasses.replace(ctrl, prior_params=params, friction_set=None, residual=None)
+    return planning_model(cfg, own, belief, force_map, est)

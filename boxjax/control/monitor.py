@@ -60,6 +60,7 @@ import numpy as np
 from boxjax import geometry
 from boxjax.config import Config, ConfigError
 from boxjax.control.state_estimate import RestWatch
+from boxjax.prior.predictor import PriorParams
 
 # Why a stop was issued; an episode that ends stopped is `safe_stop` with one of these.
 BALANCE, STALE = "balance", "stale_observation"
@@ -116,6 +117,11 @@ class MonitorConfig:
     # catches a turn that moves them away from the box, unseen, counting on a drag the world does not
     # give. 0: off.
     drag_bound: float = 0.0
+    # The monitor's own model: a physics prior with these settings (`prior.PriorParams`) on the planner's
+    # belief, for the check and its prediction over the delay; None: the model in the planner's slot.
+    # The planner's settings were chosen with the default prior's biases; a safety check wants the most
+    # accurate prediction instead (docs/results/faults.md, "The monitor's own model").
+    prior_params: PriorParams | None = None
     # Recovery: a balance stop at rest above `resume_below` sends the planner's action (then the stop
     # `Check.go_stop`: belts to rest, carriages held) when the model predicts it brings the box at least
     # `recover_gain` (m) closer to the middle and never above `stop_at` (with the estimate's margin), so
@@ -170,6 +176,8 @@ class MonitorConfig:
                 bad(name, "must be a whole number >= 1")
         if not self.standstill_speed > 0:
             bad("standstill_speed", "must be a positive speed (m/s)")
+        if self.prior_params is not None and not isinstance(self.prior_params, PriorParams):
+            bad("prior_params", "must be a prior.PriorParams or None")
         if self.backup not in BACKUP_CHOICES:
             bad("backup", f"must be one of {BACKUP_CHOICES}")
 

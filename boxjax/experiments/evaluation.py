@@ -485,7 +485,10 @@ def controller_from_settings(st: dict) -> ControllerConfig:
         c["pose_filter"] = FilterConfig(**c["pose_filter"])
     # evaluations written before the runtime safety monitor ran without one
     if isinstance(c.get("monitor"), dict):  # and before recover_until_worse
-        c["monitor"] = MonitorConfig(**{"recover_until_worse": False, **c["monitor"]})
+        m = {"recover_until_worse": False, **c["monitor"]}
+        if isinstance(m.get("prior_params"), dict):
+            m["prior_params"] = prior.PriorParams(**m["prior_params"])
+        c["monitor"] = MonitorConfig(**m)
     else:
         c["monitor"] = monitor.OFF
     if isinstance(c.get("friction_set"), list):  # JSON keeps the tuple as a list

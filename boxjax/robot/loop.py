@@ -73,15 +73,17 @@ class PlannerStep:
     planner's own state (`init` on the first call, then `optimize`'s plan_state) and splits `key` once
     per call, as `control.episode.run_episode` does; and, as there, the runtime safety monitor
     (`boxjax.control.monitor`; on by default, `monitor=MonitorConfig(enabled=False)` removes it) checks
-    each action with the same model and replaces it by the controlled stop when the turn is about to
-    lose the box. `sigma` (m, or a function giving it each step): the standard deviation of the pose
-    estimate's y the monitor assumes (the robot's vision pipeline's; a `RobotLoop` given the pose noise
-    links it to its filter's; the loop's staleness stops are the adapter's); `delay`: the control steps
-    the loop predicts its observations over (`RobotLoop(latency_model=...)`), whose prediction error the
-    monitor adds (`MonitorConfig.delay_std`); a `RobotLoop` with a `latency_model` also gives it the
-    present predicted without the drag of the carriage moves in flight (`held`, for
-    `MonitorConfig.drag_bound`; consumed by the next call). `stopped` and `monitor.record()` say what it
-    did."""
+    each action and replaces it by the controlled stop when the turn is about to lose the box. It checks
+    with the same model, or with `monitor_model` (required with `MonitorConfig.prior_params`: the
+    monitor's own prior, e.g. `control.models.monitor_model(cfg, ctrl, belief, None)`). `sigma` (m, or a
+    function giving it each step): the standard deviation of the pose estimate's y the monitor assumes
+    (the robot's vision pipeline's; a `RobotLoop` given the pose noise links it to its filter's; the
+    loop's staleness stops are the adapter's); `delay`: the control steps the loop predicts its
+    observations over (`RobotLoop(latency_model=...)`), whose prediction error the monitor adds
+    (`MonitorConfig.delay_std`). A `RobotLoop` with a `latency_model` also gives it, as `late`, the
+    newest estimate and the actions in flight, from which the monitor predicts the present with its own
+    model and, for `MonitorConfig.drag_bound`, without the carriages' drag (consumed by the next call).
+    `stopped` and `monitor.record()` say what it did."""
 
     def __init__(
         self,
@@ -93,13 +95,22 @@ class PlannerStep:
         monitor: MonitorConfig = MonitorConfig(),  # noqa: B008 (frozen)
         sigma: float | Callable[[], float] = 0.0,
         delay: int = 0,
+        monitor_model=None,
     ):
+        if monitor.enabled and monitor.prior_params is not None and monitor_model is None:
+            raise ValueError(
+                "MonitorConfig.prior_params (the monitor's own prior) needs its model: pass monitor_model, "
+                "e.g. control.models.monitor_model(cfg, ctrl, belief, None)"
+            )
         self.planner, self.model, self.key = planner, model, key
+        self.monitor_model = monitor_model
         self.plan_state = None
         self.cfg, self.t = cfg, 0
         self.sigma: float | Callable[[], float] = sigma if callable(sigma) else float(sigma)
         self.monitor = Monitor(cfg, monitor, delay) if monitor.enabled else None
-        self.held = None  # the next call's undragged present (W, 5), set by the loop
+        # the next call's (window (W, 5), belt speeds (2,), actions in flight (D, 4)) at the newest
+        # estimate's time, set by the loop; None: the observation is the present as it is
+        self.late = None
 
     @property
     def stopped(self) -> bool:
@@ -111,17 +122,25 @@ class PlannerStep:
         self.key, key = jax.random.split(self.key)
         a, self.plan_state, _ = self.planner.optimize(key, self.model, obs, self.plan_state)
         a = np.asarray(a, np.float64)
-        held, self.held = self.held, None
+        late, self.late = self.late, None
         if self.monitor is not None and np.all(np.isfinite(a)):
+            model = self.model if self.monitor_model is None else self.monitor_model
+            window, held = obs.window, None
+            if late is not None:
+                w, b, flying = late
+                if self.monitor_model is not None:  # its own model predicts over the delay too
+                    window = _compensate(model, w, b, flying)[0]
+                if self.monitor.m.drag_bound:  # the box not dragged over the delay
+                    held = _compensate_held(model, w, b, flying, window, self.monitor.m.drag_bound)
             check = monitor_check(
                 self.cfg,
-                self.model,
-                obs.window,
+                model,
+                np.asarray(window, np.float32),
                 obs.belt_speed,
                 np.asarray(a, np.float32),
                 self.monitor.m.horizon,
                 self.monitor.m.backup,
-                None if held is None else np.asarray(held, np.float32),
+                held,
             )
             sigma = self.sigma() if callable(self.sigma) else self.sigma
             a = self.monitor.decide(self.t, a, to_host(check), sigma, 0, np.asarray(obs.belt_speed))
@@ -257,8 +276,8 @@ class RobotLoop:
         if reason is not None:
             return (*self._stop(), {"safe_stop": True, "reason": reason, "observation": seen, "error": None})
         window, belt, ahead = self.predicted(now)
-        if isinstance(self.plan_step, PlannerStep):
-            self.plan_step.held = self.held(now, window)
+        if isinstance(self.plan_step, PlannerStep):  # its monitor predicts from the newest estimate too
+            self.plan_step.late = self.late(now)
         action = self.plan_step(planning.observation(window, belt, self.target_yaw))
         velocity, carriage, status = commands_from_action(action, self._p_target, now, self._stamp, self.cfg)
         self._p_target = carriage_targets(carriage, self.cfg)
@@ -282,26 +301,15 @@ class RobotLoop:
         )
         return np.asarray(w, np.float64), np.asarray(b, np.float64), steps
 
-    def held(self, now: float, predicted: np.ndarray) -> np.ndarray | None:
-        """(W, 5) the window `predicted` gave for `now` with the box moved back by the monitor's
-        `drag_bound` of the drag the carriage moves in flight were predicted to give it
-        (`planning.compensate_held`); None where nothing is predicted or the plan step's monitor bounds no
-        drag."""
-        step = self.plan_step
-        bound = step.monitor.m.drag_bound if isinstance(step, PlannerStep) and step.monitor else 0.0
+    def late(self, now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(window (W, 5), belt speeds (2,), actions (D, 4)), float32: the window and belt speeds at the
+        newest pose's stamp and the actions sent since, over which `predicted` moves them to `now`; None
+        where nothing is predicted."""
         steps = self._steps(now)
-        if not bound or self.latency_model is None or steps == 0:
+        if self.latency_model is None or steps == 0:
             return None
-        w = planning.check_window(self.window)
-        held = _compensate_held(
-            self.latency_model,
-            np.asarray(w, np.float32),
-            np.asarray(self._belt_speed, np.float32),
-            self._flying(steps),
-            np.asarray(predicted, np.float32),
-            bound,
-        )
-        return np.asarray(held, np.float64)
+        w = np.asarray(planning.check_window(self.window), np.float32)
+        return w, np.asarray(self._belt_speed, np.float32), self._flying(steps)
 
     def _steps(self, now: float) -> int:
         """Whole control steps from the newest pose's stamp to `now` (0 to `MAX_PREDICTED_STEPS`)."""
