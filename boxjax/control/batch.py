@@ -103,12 +103,6 @@ def _batched_compensate():
 
 
 @lru_cache(maxsize=1)
-def _batched_compensate_held():
-    """`planning.compensate_held` vmapped over boxes and jitted."""
-    return jax.jit(jax.vmap(planning.compensate_held))
-
-
-@lru_cache(maxsize=1)
 def _batched_predict_first():
     """`planning.predict_first` vmapped over boxes and jitted (the filters' predictions of the next frame)."""
     return jax.jit(jax.vmap(planning.predict_first))
@@ -371,7 +365,6 @@ def run_episodes(
         width = -(-min(slots, len(queue)) // n_dev) * n_dev  # a multiple of the devices: equal shards
         windows = {b: controller.first_window(np.stack([s for s, _ in rec[b].seen])) for b in queue}
         compensate_b = _batched_compensate()
-        compensate_held_b = _batched_compensate_held()
         predict_b = _batched_predict_first()
 
         def measured(boxes_: list[int]) -> tuple[np.ndarray, np.ndarray]:
@@ -441,11 +434,8 @@ def run_episodes(
                     use = [b if b is not None else live[0] for b in slot_box]
                     w, belt = measured(use)
                     flying = put(np.stack([controller.in_flight(rec[b].sent, delay) for b in use]))
-                    if own_monitor:  # its own model predicts over the delay too
-                        seen_b = compensate_b(m_b, put(w), put(belt), flying)[0]
-                    if ctrl.monitor.drag_bound:  # the boxes not dragged over the delay
-                        bound = jnp.full(len(use), ctrl.monitor.drag_bound, jnp.float32)
-                        held = compensate_held_b(m_b, put(w), put(belt), flying, seen_b, put(bound))
+                    present_b = monitor.present_batch(own_monitor, ctrl.monitor.drag_bound)
+                    seen_b, held = present_b(m_b, put(w), put(belt), flying, obs_b.window)
                 checks = monitor.check_batch(
                     cfg, m_b, seen_b, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
                     ctrl.monitor.horizon, ctrl.monitor.backup, held,

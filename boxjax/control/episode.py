@@ -63,7 +63,6 @@ def _controller_data(seen, sent) -> dict:
 
 
 _compensate = jax.jit(planning.compensate)
-_compensate_held = jax.jit(planning.compensate_held)
 
 
 def in_flight(sent: list, n: int) -> np.ndarray:
@@ -282,9 +281,13 @@ def run_episode(
         # The simulator reference simulates the believed box when asked to, else the env's own.
         sim_box = simulator.belief_model(cfg, ctrl.simulator, belief) if mpc.privileged else None
 
-        def observe(state):
+        def measured():
+            """The planner's window and the belt speeds at the newest frame's measurement time."""
             w = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
-            b = np.asarray(seen[-1][1], np.float32)
+            return w, np.asarray(seen[-1][1], np.float32)
+
+        def observe(state):
+            w, b = measured()
             if world.delay:  # predicted over the loop's delays to when the next action applies
                 w, b = _compensate(model, w, b, in_flight(sent, world.delay))
             sim = None
@@ -313,17 +316,15 @@ def run_episode(
             if not np.all(np.isfinite(a)):  # never send a NaN action to the belts
                 raise RuntimeError(f"planner produced a non-finite action {a.tolist()}; stopping")
             if mon is not None:  # the runtime safety monitor: send the action, or stop
-                seen_w, held = obs.window, None
                 own = mon_model is not None  # the monitor's own model predicts over the delay too
                 m_model = mon_model if own else model
+                seen_w, held = obs.window, None
                 if world.delay and (own or ctrl.monitor.drag_bound):
-                    w = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
-                    b = np.asarray(seen[-1][1], np.float32)
+                    w, b = measured()
                     flying = in_flight(sent, world.delay)
-                    if own:
-                        seen_w = _compensate(mon_model, w, b, flying)[0]
-                    if ctrl.monitor.drag_bound:  # the box not dragged over the delay
-                        held = _compensate_held(m_model, w, b, flying, seen_w, ctrl.monitor.drag_bound)
+                    seen_w, held = monitor.present_one(
+                        m_model, w, b, flying, obs.window, own, ctrl.monitor.drag_bound
+                    )
                 check = monitor.check(
                     cfg,
                     m_model,
@@ -347,8 +348,7 @@ def run_episode(
             if ctrl.observer_gain > 0:
                 predicted = planning.predict_first(model, obs.window, obs.belt_speed, a)
             if world.model_motion:  # the filter's prediction of the next frame, with this model
-                w_meas = planning.check_window(world.planner_window(window[-planning.MIN_WINDOW :]))
-                b_meas = np.asarray(seen[-1][1], np.float32)
+                w_meas, b_meas = measured()
                 world.expect(planning.predict_first(model, w_meas, b_meas, world.applied_next([*sent, a])))
             state = act(state, a)
             window.append(np.asarray(seen[-1][0]))

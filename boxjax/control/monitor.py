@@ -50,14 +50,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import deque
-from functools import partial
+from functools import lru_cache, partial
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import geometry
+from boxjax import geometry, planning
 from boxjax.config import Config, ConfigError
 from boxjax.control.state_estimate import RestWatch
 from boxjax.prior.predictor import PriorParams
@@ -261,6 +261,28 @@ def predicted_errors(
         stop_plan=backups[stop_b],
         go_stop=backups[0],
     )
+
+
+def present(model, window, belt_speed, actions, compensated, own: bool, drag_bound: float):
+    """What the monitor checks from, for a loop `actions` (D, 4) late: (window, held). `window`: the
+    planner's present (`compensated`), or with `own` (the monitor's own prior in `model`) that model's
+    prediction from the newest estimate's `window` and `belt_speed` over the actions in flight
+    (`planning.compensate`); `held`: with `drag_bound` the same present with that fraction of the drag of
+    the carriage moves in flight withheld (`planning.compensate_held`), else None."""
+    if own:
+        compensated = planning.compensate(model, window, belt_speed, actions)[0]
+    if not drag_bound:
+        return compensated, None
+    return compensated, planning.compensate_held(model, window, belt_speed, actions, compensated, drag_bound)
+
+
+present_one = jax.jit(present, static_argnames=("own", "drag_bound"))
+
+
+@lru_cache(maxsize=4)
+def present_batch(own: bool, drag_bound: float):
+    """`present` vmapped over boxes (their models stacked) and jitted, for these settings."""
+    return jax.jit(jax.vmap(partial(present, own=own, drag_bound=drag_bound)))
 
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))

@@ -45,7 +45,7 @@ import numpy as np
 
 from boxjax import planning
 from boxjax.config import DEFAULT, Config, TaskConfig
-from boxjax.control.monitor import Monitor, MonitorConfig, to_host
+from boxjax.control.monitor import Monitor, MonitorConfig, present_one, to_host
 from boxjax.control.monitor import check as monitor_check
 from boxjax.control.state_estimate import FilterConfig, PoseFilter, make_filter, state_line, state_window
 from boxjax.robot.adapter import (
@@ -63,7 +63,6 @@ from boxjax.sim.faults import Faults
 LOOP_STOP_REASONS = (*STOP_REASONS, "no_observation", "invalid_observation")
 MAX_PREDICTED_STEPS = 20  # the longest latency (control steps) the loop predicts over (as `Faults`' bound)
 _compensate = jax.jit(planning.compensate)
-_compensate_held = jax.jit(planning.compensate_held)
 
 PlanStep = Callable[[planning.Observation], Any]  # observation -> action (4,) (v1, v2, dp1, dp2)
 
@@ -126,12 +125,9 @@ class PlannerStep:
         if self.monitor is not None and np.all(np.isfinite(a)):
             model = self.model if self.monitor_model is None else self.monitor_model
             window, held = obs.window, None
-            if late is not None:
-                w, b, flying = late
-                if self.monitor_model is not None:  # its own model predicts over the delay too
-                    window = _compensate(model, w, b, flying)[0]
-                if self.monitor.m.drag_bound:  # the box not dragged over the delay
-                    held = _compensate_held(model, w, b, flying, window, self.monitor.m.drag_bound)
+            own, bound = self.monitor_model is not None, self.monitor.m.drag_bound
+            if late is not None and (own or bound):  # predicted from the newest estimate by the monitor
+                window, held = present_one(model, *late, np.asarray(obs.window, np.float32), own, bound)
             check = monitor_check(
                 self.cfg,
                 model,
