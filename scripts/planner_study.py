@@ -34,6 +34,7 @@ from boxjax.config import DEFAULT
 from boxjax.control import batch
 from boxjax.control.config import ControllerConfig
 from boxjax.control.monitor import MonitorConfig
+from boxjax.control.state_estimate import FilterConfig
 from boxjax.experiments import evaluation as experiments
 from boxjax.planners.sampling import SamplingOptions
 from boxjax.planners.simulator import SimulatorOptions
@@ -76,6 +77,7 @@ def main(argv=None) -> dict:
     ap.add_argument(
         "--monitor", action="append", default=[], metavar="KEY=VALUE", help="a MonitorConfig field"
     )
+    ap.add_argument("--filter", action="append", default=[], metavar="KEY=VALUE", help="a FilterConfig field")
     ap.add_argument(
         "--fault", action="append", default=[], metavar="KEY=VALUE", help="a sim.faults.Faults field"
     )
@@ -108,6 +110,10 @@ def main(argv=None) -> dict:
             if isinstance(mon.get("prior_params"), dict):  # the monitor's own prior: PriorParams fields
                 mon["prior_params"] = PriorParams(**mon["prior_params"])
             fields["monitor"] = MonitorConfig(**mon)
+        if args.filter:
+            if "pose_filter" in fields:
+                raise ValueError("give the pose filter's fields with --filter KEY=VALUE, not --controller")
+            fields["pose_filter"] = FilterConfig(**_pairs(args.filter, "filter"))
         ctrl = ControllerConfig(
             sampling=SamplingOptions(**_pairs(args.sampling, "sampling")), prior_params=prior_params, **fields
         )

@@ -475,3 +475,49 @@ def test_batched_episodes_give_the_model_driven_filter_its_prediction_every_mpc_
     mpc_steps = sum(len(r.trace.actions) - r.summary["exploration_steps"] for r in res)  # a plan per MPC step
     assert mpc_steps > 0 and len(calls) == mpc_steps
     assert all(c.shape == (5,) and np.all(np.isfinite(c)) for c in calls)
+
+
+def test_a_carriage_move_adds_its_unknown_drag_to_the_y_variance_and_the_filter_stays_consistent():
+    """A carriage moved under the box drags it by an unknown fraction of the travel (the encoders give
+    the travel): with `carriage_drag_std` s the predicted y variance grows by s^2 times each carriage's
+    squared travel (a held frame carries none, the next fresh one all of it). Kalman consistency: with the
+    true drag fraction drawn with that spread, after a box averaged at rest is dragged, the errors' spread
+    matches the variance the filter states; without it the filter holds its rest estimate and its stated
+    std is a fraction of its error (the overconfidence that let a 10 mm sensor's monitor resume a box
+    that was 1 cm further out than it believed, docs/results/faults.md)."""
+    dt, noise, s = CFG.gripper.control_dt, 10e-3, 0.3
+    f = F.Faults(obs_noise_mm=1e3 * noise)
+    rest = np.array([-0.1, 0.1, 0.0, 0.02, 0.0])
+    # closed form: a still predict adds nothing but the drag, sum of both carriages' squared travel
+    flt = make_filter(FilterConfig(carriage_drag_std=s), f, dt)
+    flt.step(rest, still=True)
+    flt.step(rest, still=True)  # the zero-velocity update: no velocity variance left
+    p0 = flt.P[1, 0, 0]
+    moved = rest + np.array([-0.01, 0.004, 0.0, 0.0, 0.0])
+    flt.step(moved, fresh=False, still=True)
+    np.testing.assert_allclose(flt.P[1, 0, 0], p0 + s**2 * (0.01**2 + 0.004**2), rtol=1e-9)
+    flt.step(moved, fresh=False, still=True)  # held again: no new travel
+    np.testing.assert_allclose(flt.P[1, 0, 0], p0 + s**2 * (0.01**2 + 0.004**2), rtol=1e-9)
+
+    def dragged(drag_std: float, seed: int) -> tuple[float, float]:
+        gen = np.random.default_rng(seed)
+        flt = make_filter(FilterConfig(carriage_drag_std=drag_std), f, dt)
+        y = 0.02
+        for _ in range(40):  # at rest: averaged to noise / sqrt(40)
+            z = rest.copy()
+            z[3] = y + noise * gen.standard_normal()
+            flt.step(z, still=True)
+        travel = 0.01
+        y += s * travel * gen.standard_normal()  # the world's drag, spread s
+        z = rest + np.array([0.0, -travel, 0.0, 0.0, 0.0])
+        z[3] = y + noise * gen.standard_normal()
+        est = flt.step(z, still=True)
+        return est[geometry.Y] - y, flt.y_std()
+
+    for drag_std, consistent in ((s, True), (0.0, False)):
+        errs, stds = zip(*(dragged(drag_std, seed) for seed in range(400)), strict=True)
+        ratio = np.std(errs) / np.sqrt(np.mean(np.square(stds)))
+        if consistent:
+            assert ratio == pytest.approx(1.0, abs=0.12), ratio
+        else:
+            assert ratio > 1.5, ratio

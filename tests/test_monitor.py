@@ -339,6 +339,27 @@ def test_the_estimates_and_the_delays_uncertainty_have_their_own_multipliers():
         assert m.stopped == stops, (k_sigma, k_delay)
 
 
+def test_a_resume_and_a_recovery_from_rest_count_their_own_multiple_of_the_estimates_std():
+    """`resume_k_sigma`: at rest, 2.2 cm predicted with a 2.5 mm std against resume_below's 2.6 cm, a
+    resume counting one std (2.45 cm) goes, one counting two (2.7 cm) waits; a recovery predicted to pass
+    2.9 cm on the way is under stop_at's 3.2 cm with one std (3.15), not with two (3.4). The stop while
+    running keeps k_sigma: 2.9 cm predicted goes on with either (2.9 + 0.25 < 3.2)."""
+    sigma, planned = 0.0025, np.array([0.2, -0.2, 0.0, 0.0])
+    for k_resume, resumes in ((None, True), (1.0, True), (2.0, False)):
+        m = Monitor(CFG, MonitorConfig(resume_k_sigma=k_resume))
+        assert _decide(m, 0, 0.029, sigma=sigma) == "go"  # running: k_sigma's margin only
+        assert _decide(m, 1, LIMIT) == "stop"
+        assert _decide(m, 2, 0.022, sigma=sigma, belt=(0, 0)) == "stop"  # the stop's step in the loop
+        assert (_decide(m, 3, 0.022, sigma=sigma, belt=(0, 0)) == "go") == resumes, k_resume
+    for k_resume, recovers in ((None, True), (2.0, False)):
+        m = Monitor(CFG, MonitorConfig(resume_k_sigma=k_resume))
+        m.decide(0, planned, _check(LIMIT), sigma, 0, np.array([0.2, -0.2]))
+        m.decide(1, planned, _check(0.029), sigma, 0, np.zeros(2))
+        ahead = _check(0.029, now=0.029, end=0.027)
+        out = m.decide(2, planned, ahead, sigma, 0, np.zeros(2))
+        assert np.array_equal(out, planned) == recovers and bool(m.recoveries) == recovers, k_resume
+
+
 def test_a_box_at_rest_between_the_thresholds_is_recovered_by_actions_predicted_to_centre_it():
     """A balance stop whose box came to rest at 2.9 cm (above `resume_below`'s 2.6, under `stop_at`'s 3.2)
     cannot resume; it sends the planner's action when the model predicts that, with its stop, it brings

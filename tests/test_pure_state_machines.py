@@ -54,6 +54,8 @@ def _checks(rng, n, horizon):
         (MonitorConfig(), 0, ("stops", "resumes", "recoveries", "recovery_failed")),
         (MonitorConfig(max_stops=3, stop_timeout=12), 1, ("stops", "ended")),  # final: timed out
         (MonitorConfig(recover=False, stop_timeout=20, k_sigma=2.0), 2, ("stops", "resumes")),
+        # a resume and a recovery from rest count more of the estimate's std than the running stop
+        (MonitorConfig(resume_k_sigma=3.0), 1, ("stops", "resumes", "recoveries")),
         # final: the max_stops-th stop
         (
             MonitorConfig(horizon=4, max_stops=3, stop_timeout=60, recover_gain=0.0),

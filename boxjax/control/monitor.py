@@ -93,6 +93,12 @@ class MonitorConfig:
     # (docs/results/faults.md).
     k_sigma: float = 1.0
     k_delay: float | None = 2.0
+    # The estimate's standard deviations a resume and a recovery count (None: k_sigma). Both are sent
+    # from rest, where nothing presses (waiting costs time, not the box), on an estimate whose error is
+    # largest just after the gripper moved the box: a 10 mm sensor's estimate was 1 cm (2.7 std) short
+    # one step after a recovery dragged its box, and the resume it allowed crossed the limit
+    # (docs/results/faults.md, "Resuming on an estimate that has not caught up").
+    resume_k_sigma: float | None = None
     # The error of the model's prediction over the loop's delays (`planning.compensate`), m per square
     # root of a control step: 1.65 / 2.48 / 3.68 mm rms of balance error at 1 / 2 / 4 steps with the prior
     # on the true box (scripts/monitor_study.py, docs/results/faults.md).
@@ -168,8 +174,10 @@ class MonitorConfig:
                 bad(name, "must be a number >= 0")
         if not (isinstance(self.drag_bound, int | float) and 0 <= self.drag_bound <= 1):
             bad("drag_bound", "must be a fraction of the model's drag in [0, 1]")
-        if self.k_delay is not None and not (math.isfinite(self.k_delay) and self.k_delay >= 0):
-            bad("k_delay", "must be a number >= 0 or None")
+        for name in ("k_delay", "resume_k_sigma"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v >= 0):
+                bad(name, "must be a number >= 0 or None")
         for name in ("max_stops", "stop_timeout", "stale_steps", "miss_window"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
@@ -395,6 +403,8 @@ class Monitor:
         k_delay = m.k_sigma if m.k_delay is None else m.k_delay
         margin = math.sqrt((m.k_sigma * sigma) ** 2 + k_delay**2 * delay_var)
         go_error = float(check.go) + margin
+        k_resume = m.k_sigma if m.resume_k_sigma is None else m.resume_k_sigma
+        resume_margin = math.sqrt((k_resume * sigma) ** 2 + k_delay**2 * delay_var)
         if m.shadow:
             if stale > m.stale_steps or go_error >= m.stop_at * limit:
                 self.would_stop.append(t)
@@ -409,11 +419,11 @@ class Monitor:
                 if self.reason == STALE:  # fresh frames again, and the action is safe
                     can_go = stale <= m.stale_steps and go_error < m.stop_at * limit
                 else:  # known at rest, and the turn's next step and stop predicted well inside the limit
-                    can_go = still and go_error < m.resume_below * limit
+                    can_go = still and float(check.go) + resume_margin < m.resume_below * limit
                 if can_go:
                     self.mode, self.reason = RUN, None
                     self.resumes.append(t)
-                elif self.reason == BALANCE and still and m.recover and self._recovers(check, margin):
+                elif self.reason == BALANCE and still and m.recover and self._recovers(check, resume_margin):
                     self.recoveries.append(t)
                     self._recovering = True
                     self._recovered_from = float(check.now) if m.recover_until_worse else None

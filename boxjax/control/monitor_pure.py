@@ -82,6 +82,8 @@ def decide(
     judged = still & st.judging
     failed = st.recovery_failed | (judged & recovery_worse(st.recovered_from, check.now, margin))
     go_error = check.go + margin
+    k_resume = m.k_sigma if m.resume_k_sigma is None else m.resume_k_sigma
+    resume_margin = k_resume * jnp.asarray(sigma, jnp.float32)  # from rest: what a resume or recovery counts
     running = ~st.stopped
 
     # running: a stop when the action and a stop after it are predicted too close to the limit
@@ -91,8 +93,10 @@ def decide(
     # stopped: resume, recover, or time out
     stopped_for = jnp.where(running, 0, st.stopped_for + 1)
     active = st.stopped & ~st.final
-    resume = active & still & (go_error < resume_below)
-    recovers = ~failed & (check.go_ahead + margin < stop_at) & (check.go_end <= check.now - m.recover_gain)
+    resume = active & still & (check.go + resume_margin < resume_below)
+    recovers = (
+        ~failed & (check.go_ahead + resume_margin < stop_at) & (check.go_end <= check.now - m.recover_gain)
+    )
     recovery = active & ~resume & still & m.recover & recovers
     timeout = active & ~resume & ~recovery & (stopped_for >= m.stop_timeout)
     final = final | timeout

@@ -81,6 +81,13 @@ class FilterConfig:
     # (benchmarks/results_closed_loop_error.json).
     model_std_mm: float = 1.5
     model_std_deg: float = 0.4
+    # The carriages' drag: a carriage moved under the box drags it sideways by a fraction of the travel
+    # that nothing in a constant-velocity motion knows (0.19 mean, 0.23 rms, 5-95 % 0.01-0.39 from rest in
+    # MuJoCo, benchmarks/results_carriage_drag.json; more under moving belts). Each carriage's travel
+    # between frames (its encoder) adds (carriage_drag_std x travel)^2 to the variance of the box's y, so
+    # that after a carriage move the filter weighs the frames that show where the box went instead of
+    # holding an estimate it averaged at rest (docs/results/faults.md). 0: off.
+    carriage_drag_std: float = 0.0
     # The window of states the planner and the monitor predict from (`World.planner_window`): "frames"
     # the filter's estimates at the last frames (their finite differences are the velocities and the
     # acceleration the prior starts from), "state" the straight line through the newest estimate along
@@ -99,6 +106,8 @@ class FilterConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"filter: {name}={v!r} must be a positive number")
+        if not (math.isfinite(self.carriage_drag_std) and self.carriage_drag_std >= 0):
+            raise ConfigError(f"filter: carriage_drag_std={self.carriage_drag_std!r} must be a number >= 0")
         if self.window is not None and self.window not in WINDOWS:
             raise ConfigError(f"filter: window={self.window!r}; choose one of {WINDOWS}")
         if self.motion not in MOTIONS:
@@ -142,13 +151,15 @@ class PoseFilter:
         mm, rad = 1e-3 * settings.model_std_mm, math.radians(settings.model_std_deg)
         self.q_model = np.array([mm**2, mm**2, rad**2])  # the model's one-step error, per axis
         self.F = np.array([[1.0, dt], [0.0, 1.0]])
+        self.drag_var = settings.carriage_drag_std**2
         self.x: np.ndarray | None = None  # (3 axes, 2): position, velocity at measurement time
         self.P: np.ndarray | None = None  # (3, 2, 2)
         self.p_carriages = np.zeros(2)
 
     def step(self, s_obs, fresh: bool = True, still: bool = False, predicted=None) -> np.ndarray:
         z = np.asarray(s_obs, np.float64)[list(_AXES)]
-        self.p_carriages = np.asarray(s_obs, np.float64)[[geometry.P1, geometry.P2]]
+        carriages = np.asarray(s_obs, np.float64)[[geometry.P1, geometry.P2]]
+        travel, self.p_carriages = carriages - self.p_carriages, carriages
         if self.x is None:  # the first frame: at rest where it is seen
             self.x = np.stack([z, np.zeros(3)], axis=1)
             self.P = np.stack([np.diag([r, 0.01]) for r in self.R])
@@ -163,6 +174,10 @@ class PoseFilter:
             self.x = self.x @ self.F.T
             # at rest nothing moves the box: no process noise, so frames of a box at rest are averaged
             self.P = self.F @ self.P @ self.F.T + (0.0 if still else self.Q)
+            # the carriages moved since the last frame (a held frame carries no new travel, the next fresh
+            # one all of it): the box's y went along by a fraction of each travel that a constant
+            # velocity does not know (the model's motion predicts it)
+            self.P[1, 0, 0] += self.drag_var * float(np.sum(np.square(travel)))
         if fresh:
             innov = z - self.x[:, 0]
             innov[2] = (innov[2] + np.pi) % (2 * np.pi) - np.pi  # yaw: the nearest turn
