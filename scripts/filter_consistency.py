@@ -9,7 +9,9 @@ move").
 
 Each episode is replayed from its recorded actions (`batch.replay_episode`: the same physics and sensor
 draws, bit for bit); the frames and rest flags its filter was given are then fed to a fresh filter per
-setting (the actions stay the recorded ones, so only the estimate differs). Per setting, over the steps
+setting (the actions stay the recorded ones, so only the estimate differs), and its estimate is compared
+with the true state at the newest frame's measurement time (what it estimates; the monitor adds the
+prediction over the delay's own std). Per setting, over the steps
 after the exploration: the rms error of the balance offset, the rms of the normalised error z = error /
 stated std (1 for an honest filter), and the share of steps with |z| > 2 and > 3 (4.6 % and 0.27 % for an
 honest Gaussian one), all steps, the steps within `--after` control steps of a carriage move made from
@@ -98,6 +100,8 @@ def main(argv=None) -> dict:
     if se.make_filter(ctrl.pose_filter, faults, CFG.gripper.control_dt) is None:
         ap.error(f"{args.eval}: its sensor is perfect, so no filter ran (nothing to measure)")
     safe = [i for i in range(len(boxes)) if not boxes.hazardous[i]][: args.boxes]
+    model_comp = ctrl.pose_filter.compensation == "model"
+    lag = se.sensor_latency(ctrl.pose_filter, faults) if model_comp else 0
     parts = ("all", "after_move", "dragged")
     per = {d: {part: ([], []) for part in parts} for d in args.drag_std}
     t0 = time.perf_counter()
@@ -108,7 +112,10 @@ def main(argv=None) -> dict:
             near[t + 1 : t + 1 + args.after] = True
             moved = np.abs(s_true[t + 1 : t + 1 + args.after, geometry.Y] - s_true[t, geometry.Y])
             dragged[t + 1 : t + 1 + args.after] |= moved > 1e-3 * args.moved_mm
+        # the filter's estimate is of the newest frame's measurement time (model compensation then predicts
+        # it over the delay), `lag` steps before the present; the constant-velocity one extrapolates
         true_off = np.array([geometry.balance_offset(s) for s in s_true])
+        true_off = np.concatenate([np.full(lag, true_off[0]), true_off[: len(true_off) - lag]])
         for d in args.drag_std:
             settings = dataclasses.replace(ctrl.pose_filter, carriage_drag_std=d)
             flt = se.make_filter(settings, faults, CFG.gripper.control_dt)
