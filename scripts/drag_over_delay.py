@@ -54,7 +54,7 @@ def collect(n: int, seed: int, faults: Faults, prior: PriorParams | None = None)
     current: list[tuple[float, float]] = []
     check, run = monitor.check, episode.run_episode
 
-    def recording_check(cfg, model, window, belt, action, horizon, backup="best", held=None):
+    def recording_check(cfg, model, window, belt, action, horizon, backup="best", held=None, tip=False):
         current.append(
             (
                 float(geometry.balance_offset(np.asarray(window[-1], np.float64))),
@@ -63,7 +63,7 @@ def collect(n: int, seed: int, faults: Faults, prior: PriorParams | None = None)
                 else np.nan,
             )
         )
-        return check(cfg, model, window, belt, action, horizon, backup, held)
+        return check(cfg, model, window, belt, action, horizon, backup, held, tip)
 
     def recording_run(*args, **kwargs):
         current.clear()

@@ -13,6 +13,7 @@ import pytest
 from boxjax import massdist
 from boxjax.config import DEFAULT as cfg
 from boxjax.control import ControllerConfig, batch, device_loop
+from boxjax.control.monitor import MonitorConfig
 from boxjax.estimator import explore
 from boxjax.experiments import evaluation as experiments
 from boxjax.experiments.evaluation import outcome
@@ -67,6 +68,7 @@ def test_the_monitors_stops_send_stops(episodes):
 def test_what_the_device_loop_cannot_run_is_refused_by_name():
     assert "faults" in device_loop.supports(CTRL, Faults(obs_noise_mm=3.0))
     assert "simulator" in device_loop.supports(ControllerConfig(planner="simulator"))
+    assert "tip_stop" in device_loop.supports(ControllerConfig(monitor=MonitorConfig(tip_stop=0.015)))
     with pytest.raises(ValueError, match="block"):
         device_loop.run_episodes(cfg, [massdist.named("A", cfg.box)], [jax.random.PRNGKey(0)], block=0)
 

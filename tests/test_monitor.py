@@ -12,7 +12,7 @@ import pytest
 from boxjax import geometry, massdist, planning
 from boxjax.config import DEFAULT, ConfigError
 from boxjax.control import monitor
-from boxjax.control.monitor import BALANCE, STALE, Monitor, MonitorConfig
+from boxjax.control.monitor import BALANCE, STALE, TIP, Monitor, MonitorConfig
 from boxjax.prior import make_prior
 
 CFG = DEFAULT
@@ -151,6 +151,50 @@ def test_the_check_predicts_with_the_model_in_the_slot():
     )
     for one, field in zip(monitor.to_host(cb, 0), monitor.to_host(c), strict=True):
         np.testing.assert_allclose(one, field, atol=1e-6)
+
+
+def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_its_stop():
+    """`tip=True`: `go_tip` is the prior's `stability_margin` at the present and along the action's
+    rollout (the action, then the stop `go` was predicted with), the smallest; a box whose centre of mass
+    sits over the gap with the belts spread has less than one on the belts' middle; not asked: +inf."""
+    prior = make_prior(massdist.voxel_masses(massdist.named("C", CFG.box), CFG.box))
+    belt, turn = jnp.zeros(2), jnp.asarray([0.1, -0.1, -STEP, STEP], jnp.float32)
+    spread = planning.initial_window(_state(p1=-0.2, p2=0.2, yaw=1.2))
+    narrow = planning.initial_window(_state(p1=-0.1, p2=0.1))
+    assert np.isinf(float(monitor.check(CFG, prior, narrow, belt, turn, 10).go_tip))
+    c = monitor.check(CFG, prior, spread, belt, turn, 10, "hold", tip=True)
+    states = prior.rollout_sequence(spread, belt, jnp.concatenate([turn[None], c.go_stop[:-1]]))
+    margins = [prior.stability_margin(spread[-1])] + [prior.stability_margin(s) for s in states]
+    np.testing.assert_allclose(float(c.go_tip), float(min(margins)), atol=1e-6)
+    on_middle = monitor.check(CFG, prior, narrow, belt, turn, 10, "hold", tip=True)
+    assert float(c.go_tip) < float(on_middle.go_tip)
+    # the batched check gives each box its own
+    cb = monitor.check_batch(
+        CFG, planning.stack([prior, prior]), jnp.stack([spread, narrow]), jnp.stack([belt, belt]),
+        jnp.stack([turn, turn]), 10, "hold", tip=True,
+    )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(cb.go_tip), [float(c.go_tip), float(on_middle.go_tip)], atol=1e-6)
+
+
+def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
+    """`tip_stop` 1.5 cm: an action whose margin (less the estimate's std) falls under it is stopped
+    (reason "tip", counted toward max_stops); at rest it neither resumes nor recovers while the planner's
+    action still would; once an action keeps the margin it resumes. Off: the same action goes."""
+    planned = np.array([0.2, -0.2, 0.0, 0.0])
+    tip = lambda go_tip: monitor.Check(*_check(0.01)[:-1], np.asarray(go_tip))  # noqa: E731
+    m = Monitor(CFG, MonitorConfig(tip_stop=0.015))
+    assert np.array_equal(m.decide(0, planned, tip(0.03), 0.002, 0, np.array([0.2, -0.2])), planned)
+    assert not np.array_equal(m.decide(1, planned, tip(0.016), 0.002, 0, np.array([0.2, -0.2])), planned)
+    assert m.stops == [(1, TIP)] and m.balance_stops == 1
+    for t in (2, 3):  # at rest, the action still predicted to tip: held
+        np.testing.assert_array_equal(m.decide(t, planned, tip(0.010), 0.002, 0, np.zeros(2)), 0.0)
+    assert m.resumes == [] and m.recoveries == []
+    assert np.array_equal(m.decide(4, planned, tip(0.02), 0.002, 0, np.zeros(2)), planned)
+    assert m.resumes == [4]
+    off = Monitor(CFG, MonitorConfig())
+    assert np.array_equal(off.decide(0, planned, tip(0.0), 0.002, 0, np.array([0.2, -0.2])), planned)
+    with pytest.raises(ConfigError, match="tip_stop"):
+        MonitorConfig(tip_stop=-0.01)
 
 
 def test_compensation_moves_the_window_over_the_actions_in_flight():
@@ -522,9 +566,9 @@ def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monke
     seen = []
 
     def spy(real):
-        def check(cfg, model, window, belt, action, horizon, backup="best", held=None):
+        def check(cfg, model, window, belt, action, horizon, backup="best", held=None, tip=False):
             seen.append(None if held is None else (np.asarray(window), np.asarray(held)))
-            return real(cfg, model, window, belt, action, horizon, backup, held)
+            return real(cfg, model, window, belt, action, horizon, backup, held, tip)
 
         return check
 

@@ -96,6 +96,8 @@ def test_pure_monitor_refuses_what_it_does_not_model():
         monitor_pure.check_supported(MonitorConfig(shadow=True))
     with pytest.raises(ValueError, match="delay"):
         monitor_pure.check_supported(MonitorConfig(), delay=2)
+    with pytest.raises(ValueError, match="tip_stop"):
+        monitor_pure.check_supported(MonitorConfig(tip_stop=0.015))
 
 
 def _states(rng, n, swing_at):

@@ -72,6 +72,8 @@ def supports(ctrl: ControllerConfig, faults: Faults | None = None) -> str | None
         return why
     if ctrl.monitor.enabled and ctrl.monitor.shadow:
         return "the monitor's shadow mode runs on the host (native backend)"
+    if ctrl.monitor.enabled and ctrl.monitor.tip_stop:
+        return "the monitor's tipping watch (tip_stop) runs on the host (native backend)"
     if faults is not None and faults.any:
         return "faults (sensor noise, latency, drops, friction, servo, mass shift) run on the native backend"
     return None

@@ -334,6 +334,7 @@ def run_episode(
                     ctrl.monitor.horizon,
                     ctrl.monitor.backup,
                     held,
+                    tip=ctrl.monitor.tip_stop > 0,
                 )
                 a = mon.decide(
                     len(actions),

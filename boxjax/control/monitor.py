@@ -63,8 +63,8 @@ from boxjax.control.state_estimate import RestWatch
 from boxjax.prior.predictor import PriorParams
 
 # Why a stop was issued; an episode that ends stopped is `safe_stop` with one of these.
-BALANCE, STALE = "balance", "stale_observation"
-REASONS = (BALANCE, STALE)
+BALANCE, STALE, TIP = "balance", "stale_observation", "tip"
+REASONS = (BALANCE, STALE, TIP)
 RUN, STOP = "run", "stop"
 # The controlled stops the monitor can issue (`backup_actions`): belts to rest, carriages held where they
 # are or moved toward the box's centre; "best" lets the model pick the one predicted safer.
@@ -147,6 +147,14 @@ class MonitorConfig:
     stop_timeout: int = 100  # control steps (5 s) a stop may last without resuming before it is final
     stale_steps: int = 2  # an observation older than this many control steps stops the belts (0.1 s)
     standstill_speed: float = 0.01  # m/s, |belt speed| under which the belts count as at rest
+    # Tipping: a stop (reason "tip") when the smallest stability margin predicted for the action and its
+    # stop (`Check.go_tip`: how far the centre of mass stays inside the support polygon of both belts'
+    # contacts, `prior.stability_margin`), less k_sigma of the estimate's std, falls under `tip_stop` (m);
+    # a stop resumes or recovers only once the action's margin is back above it. Turned boxes whose mass
+    # sits in a corner tipped into the gap as the carriages spread to their stops, the margin falling
+    # from 2-3 cm to below zero in 2-3 steps; one tipped at rest at 9 mm (docs/results/faults.md,
+    # "Tipping"). 0: off (the check then computes no margin).
+    tip_stop: float = 0.0
     # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, made when the stop is issued,
     # between holding them and moving them toward the box's centre; "hold" or "recentre" always. Moving a
     # carriage drags the box on its belt with it: with one carriage at its stop, re-centring moved a
@@ -169,7 +177,7 @@ class MonitorConfig:
         for name in ("recover", "recover_until_worse"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, "must be true or false")
-        for name in ("k_sigma", "delay_std", "miss_sigmas", "recover_gain", "drag_std"):
+        for name in ("k_sigma", "delay_std", "miss_sigmas", "recover_gain", "drag_std", "tip_stop"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
         if not (isinstance(self.drag_bound, int | float) and 0 <= self.drag_bound <= 1):
@@ -238,16 +246,29 @@ class Check(NamedTuple):
     go_end: jax.Array  # () its balance error at the horizon's end, once the stop has played out
     stop_plan: jax.Array  # (horizon, 4) the stop predicted safest at once (a stop issued now sends it)
     go_stop: jax.Array  # (horizon, 4) that stop (its first horizon - 1 steps follow a recovery)
+    # () the smallest stability margin (m), now and over the horizon, of the action then its stop (the
+    # `go` one); +inf when not asked for (`tip`)
+    go_tip: jax.Array = np.float32(np.inf)
 
 
 def predicted_errors(
-    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None
+    cfg: Config,
+    model,
+    window,
+    belt_speed,
+    action,
+    horizon: int,
+    backup: str = "best",
+    held=None,
+    tip: bool = False,
 ) -> Check:
     """The largest balance error, now (the window's newest state) and over `horizon` predicted steps, of
     (a) `action` followed by a stop and (b) a stop at once, each with the stop of `backup_set` predicted
     safest, those stops, and the recovery's prediction (a `Check`). `held`: a second window for the same
     present (`planning.compensate_held`: the carriage moves over the delay not dragging the box); every
-    error is then the worse of the two windows' (`MonitorConfig.drag_bound`)."""
+    error is then the worse of the two windows' (`MonitorConfig.drag_bound`). `tip`: also the smallest
+    stability margin of the action's rollout (`Check.go_tip`, the worse window's; the model's
+    `stability_margin`)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
@@ -260,6 +281,13 @@ def predicted_errors(
     worst = jnp.max(errors, axis=2)  # (go | stop, V)
     go_b, stop_b = jnp.argmin(worst[0]), jnp.argmin(worst[1])
     now = jnp.max(jax.vmap(geometry.balance_error)(starts[:, -1]))
+    go_tip = jnp.float32(jnp.inf)
+    if tip:
+        go_states = states[:, go_b]  # (windows, horizon, 5): the action, then its stop
+        margins = jax.vmap(jax.vmap(model.stability_margin))(go_states)
+        now_margin = jax.vmap(model.stability_margin)(starts[:, -1])
+        go_tip = jnp.minimum(jnp.min(margins), jnp.min(now_margin))
+        go_tip = jnp.where(jnp.isfinite(go_tip), go_tip, -jnp.inf)  # a diverged model: not believed safe
     return Check(
         go=jnp.maximum(worst[0, go_b], now),
         stop=jnp.maximum(worst[1, stop_b], now),
@@ -268,6 +296,7 @@ def predicted_errors(
         go_end=errors[0, 0, -1],
         stop_plan=backups[stop_b],
         go_stop=backups[0],
+        go_tip=go_tip,
     )
 
 
@@ -293,20 +322,36 @@ def present_batch(own: bool, drag_bound: float):
     return jax.jit(jax.vmap(partial(present, own=own, drag_bound=drag_bound)))
 
 
-@partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
+@partial(jax.jit, static_argnames=("cfg", "horizon", "backup", "tip"))
 def check(
-    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None
+    cfg: Config,
+    model,
+    window,
+    belt_speed,
+    action,
+    horizon: int,
+    backup: str = "best",
+    held=None,
+    tip: bool = False,
 ) -> Check:
     """Jitted `predicted_errors`."""
-    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup, held)
+    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup, held, tip)
 
 
-@partial(jax.jit, static_argnames=("cfg", "horizon", "backup"))
+@partial(jax.jit, static_argnames=("cfg", "horizon", "backup", "tip"))
 def check_batch(
-    cfg: Config, models, windows, belt_speeds, actions, horizon: int, backup: str = "best", held=None
+    cfg: Config,
+    models,
+    windows,
+    belt_speeds,
+    actions,
+    horizon: int,
+    backup: str = "best",
+    held=None,
+    tip: bool = False,
 ):
     """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's)."""
-    one = partial(predicted_errors, cfg, horizon=horizon, backup=backup)
+    one = partial(predicted_errors, cfg, horizon=horizon, backup=backup, tip=tip)
     if held is None:
         return jax.vmap(one)(models, windows, belt_speeds, actions)
     both = jax.vmap(lambda m, w, b, a, h: one(m, w, b, a, held=h))
@@ -405,12 +450,14 @@ class Monitor:
         go_error = float(check.go) + margin
         k_resume = m.k_sigma if m.resume_k_sigma is None else m.resume_k_sigma
         resume_margin = math.sqrt((k_resume * sigma) ** 2 + k_delay**2 * delay_var)
+        tipping = m.tip_stop > 0 and float(check.go_tip) - margin < m.tip_stop
         if m.shadow:
-            if stale > m.stale_steps or go_error >= m.stop_at * limit:
+            if stale > m.stale_steps or go_error >= m.stop_at * limit or tipping:
                 self.would_stop.append(t)
             return self._send(action)
         if self.mode == RUN:
             why = STALE if stale > m.stale_steps else (BALANCE if go_error >= m.stop_at * limit else None)
+            why = TIP if why is None and tipping else why
             if why is not None:
                 self._stop(t, why, check.stop_plan)
         else:
@@ -419,11 +466,18 @@ class Monitor:
                 if self.reason == STALE:  # fresh frames again, and the action is safe
                     can_go = stale <= m.stale_steps and go_error < m.stop_at * limit
                 else:  # known at rest, and the turn's next step and stop predicted well inside the limit
-                    can_go = still and float(check.go) + resume_margin < m.resume_below * limit
+                    inside = float(check.go) + resume_margin < m.resume_below * limit
+                    can_go = still and inside and not tipping
                 if can_go:
                     self.mode, self.reason = RUN, None
                     self.resumes.append(t)
-                elif self.reason == BALANCE and still and m.recover and self._recovers(check, resume_margin):
+                elif (
+                    self.reason != STALE
+                    and still
+                    and m.recover
+                    and not tipping
+                    and self._recovers(check, resume_margin)
+                ):
                     self.recoveries.append(t)
                     self._recovering = True
                     self._recovered_from = float(check.now) if m.recover_until_worse else None
@@ -468,7 +522,7 @@ class Monitor:
         self.mode, self.reason, self.stopped_for = STOP, why, 0
         self._plan = deque(np.asarray(plan, np.float64).reshape(-1, 4))
         self.stops.append((t, why))
-        if why == BALANCE:
+        if why != STALE:  # a balance or a tipping stop: both count toward max_stops
             self.balance_stops += 1
             self.final = self.balance_stops >= self.m.max_stops
 

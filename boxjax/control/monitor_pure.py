@@ -50,6 +50,11 @@ def check_supported(settings: MonitorConfig, delay: int = 0) -> None:
     """Raise ValueError naming what the pure monitor does not model (the host `Monitor` does)."""
     if settings.shadow:
         raise ValueError("the on-device monitor does not run in shadow mode (use the host loop)")
+    if settings.tip_stop:
+        raise ValueError(
+            f"the on-device monitor does not watch tipping (tip_stop={settings.tip_stop}): run it on the "
+            "native backend"
+        )
     if delay:
         raise ValueError(
             f"the on-device monitor runs with fresh frames and no loop delay, not {delay} steps of delay "

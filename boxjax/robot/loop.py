@@ -137,6 +137,7 @@ class PlannerStep:
                 self.monitor.m.horizon,
                 self.monitor.m.backup,
                 held,
+                tip=self.monitor.m.tip_stop > 0,
             )
             sigma = self.sigma() if callable(self.sigma) else self.sigma
             a = self.monitor.decide(self.t, a, to_host(check), sigma, 0, np.asarray(obs.belt_speed))
