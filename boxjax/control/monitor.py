@@ -252,15 +252,7 @@ class Check(NamedTuple):
 
 
 def predicted_errors(
-    cfg: Config,
-    model,
-    window,
-    belt_speed,
-    action,
-    horizon: int,
-    backup: str = "best",
-    held=None,
-    tip: bool = False,
+    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None, tip=False
 ) -> Check:
     """The largest balance error, now (the window's newest state) and over `horizon` predicted steps, of
     (a) `action` followed by a stop and (b) a stop at once, each with the stop of `backup_set` predicted
@@ -324,15 +316,7 @@ def present_batch(own: bool, drag_bound: float):
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup", "tip"))
 def check(
-    cfg: Config,
-    model,
-    window,
-    belt_speed,
-    action,
-    horizon: int,
-    backup: str = "best",
-    held=None,
-    tip: bool = False,
+    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None, tip=False
 ) -> Check:
     """Jitted `predicted_errors`."""
     return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup, held, tip)
@@ -348,7 +332,7 @@ def check_batch(
     horizon: int,
     backup: str = "best",
     held=None,
-    tip: bool = False,
+    tip=False,
 ):
     """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's)."""
     one = partial(predicted_errors, cfg, horizon=horizon, backup=backup, tip=tip)
