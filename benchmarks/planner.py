@@ -33,6 +33,7 @@ import os
 import platform
 import sys
 import time
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -190,6 +191,8 @@ def _monitor(cfg, model, window, speed, target, keys, calls: int) -> dict:
     for name, fn, args_for in (
         ("planner_default", splan, lambda i: (keys[i], model, window, speed, target, nominal)),
         ("check", monitor.check, lambda i: (cfg, model, window, speed, action, horizon)),
+        # with the tipping watch (`MonitorConfig.tip_stop`): the stability margin along the action's rollout
+        ("check_tip", partial(monitor.check, tip=True), lambda i: (cfg, model, window, speed, action, horizon)),
         ("compensate_2_steps", compensate, lambda i: (model, window, speed, in_flight)),
     ):
         t0 = time.perf_counter()

@@ -13,7 +13,6 @@ import pytest
 from boxjax import massdist
 from boxjax.config import DEFAULT as cfg
 from boxjax.control import ControllerConfig, batch, device_loop
-from boxjax.control.monitor import MonitorConfig
 from boxjax.estimator import explore
 from boxjax.experiments import evaluation as experiments
 from boxjax.experiments.evaluation import outcome
@@ -68,7 +67,6 @@ def test_the_monitors_stops_send_stops(episodes):
 def test_what_the_device_loop_cannot_run_is_refused_by_name():
     assert "faults" in device_loop.supports(CTRL, Faults(obs_noise_mm=3.0))
     assert "simulator" in device_loop.supports(ControllerConfig(planner="simulator"))
-    assert "tip_stop" in device_loop.supports(ControllerConfig(monitor=MonitorConfig(tip_stop=0.015)))
     with pytest.raises(ValueError, match="block"):
         device_loop.run_episodes(cfg, [massdist.named("A", cfg.box)], [jax.random.PRNGKey(0)], block=0)
 
@@ -128,4 +126,37 @@ def test_the_monitor_checks_with_its_own_prior_on_the_device(monkeypatch):
         max_steps=80,
     )
     assert traced and all(p == own for p in traced)
+    assert outcome(res[0].summary) is not None
+
+
+def test_the_device_loops_record_names_tipping_stops():
+    """The on-device events become the host monitor's record: a stop at a step of the `tip` events is a
+    "tip" stop, the episode's reason the last stop's."""
+    from boxjax.control import monitor
+
+    rec = device_loop._MonitorRecord([5, 30], [12], [], [5, 6, 30], stopped=True, tips=[30])
+    assert rec.stops == [(5, monitor.BALANCE), (30, monitor.TIP)] and rec.reason == monitor.TIP
+    assert rec.record()["monitor_stop_reasons"] == [monitor.BALANCE, monitor.TIP]
+    assert device_loop._MonitorRecord([5], [], [], [5], stopped=True).reason == monitor.BALANCE
+
+
+@pytest.mark.slow
+def test_the_tipping_watch_runs_on_the_device(monkeypatch):
+    """`MonitorConfig.tip_stop` on the device: the turn's program asks the check for the stability margin,
+    and the episode ends with an outcome."""
+    from boxjax.control import monitor
+    from boxjax.control.monitor import MonitorConfig
+
+    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0), monitor=MonitorConfig(tip_stop=0.015))
+    asked = []
+    real = monitor.predicted_errors
+
+    def spy(*args, **kwargs):
+        asked.append(kwargs.get("tip", False))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(monitor, "predicted_errors", spy)
+    box, key = massdist.named("C", cfg.box), jax.random.PRNGKey(0)
+    res = device_loop.run_episodes(cfg, [box], [key], ctrl=ctrl, slots=1, block=10, max_steps=80)
+    assert asked and all(asked)
     assert outcome(res[0].summary) is not None

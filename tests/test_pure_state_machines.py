@@ -44,6 +44,7 @@ def _checks(rng, n, horizon):
             go_end=np.float32(now + rng.normal(0, 0.002)),
             stop_plan=_stop_plan(rng, horizon),
             go_stop=_stop_plan(rng, horizon),
+            go_tip=np.float32(rng.uniform(0.005, 0.05)),  # the smallest stability margin (m)
         )
 
 
@@ -56,6 +57,8 @@ def _checks(rng, n, horizon):
         (MonitorConfig(recover=False, stop_timeout=20, k_sigma=2.0), 2, ("stops", "resumes")),
         # a resume and a recovery from rest count more of the estimate's std than the running stop
         (MonitorConfig(resume_k_sigma=3.0), 1, ("stops", "resumes", "recoveries")),
+        # tipping stops, held while the action would tip
+        (MonitorConfig(tip_stop=0.012), 0, ("stops", "resumes", "recoveries", "tip_stops")),
         # final: the max_stops-th stop
         (
             MonitorConfig(horizon=4, max_stops=3, stop_timeout=60, recover_gain=0.0),
@@ -80,6 +83,7 @@ def test_pure_monitor_decides_as_the_host_monitor(settings, seed, visits):
         )
         np.testing.assert_allclose(np.asarray(sent), sent_host, atol=1e-7, err_msg=f"step {t}")
         assert bool(ev.stop) == (bool(host.stops) and host.stops[-1][0] == t), t
+        assert bool(ev.tip) == (bool(ev.stop) and host.stops[-1][1] == monitor.TIP), t
         assert bool(ev.resume) == (bool(host.resumes) and host.resumes[-1] == t), t
         assert bool(ev.recovery) == (bool(host.recoveries) and host.recoveries[-1] == t), t
         assert bool(st.ended) == host.ended and bool(st.stopped) == host.stopped, t
@@ -88,6 +92,7 @@ def test_pure_monitor_decides_as_the_host_monitor(settings, seed, visits):
             stopping.append(t)
     assert set(stopping) == host.stopping_steps
     assert int(st.balance_stops) == host.balance_stops
+    host.tip_stops = [t for t, why in host.stops if why == monitor.TIP]
     assert all(getattr(host, what) for what in visits)  # the sequence visits what it is for
 
 
@@ -96,8 +101,6 @@ def test_pure_monitor_refuses_what_it_does_not_model():
         monitor_pure.check_supported(MonitorConfig(shadow=True))
     with pytest.raises(ValueError, match="delay"):
         monitor_pure.check_supported(MonitorConfig(), delay=2)
-    with pytest.raises(ValueError, match="tip_stop"):
-        monitor_pure.check_supported(MonitorConfig(tip_stop=0.015))
 
 
 def _states(rng, n, swing_at):

@@ -72,8 +72,6 @@ def supports(ctrl: ControllerConfig, faults: Faults | None = None) -> str | None
         return why
     if ctrl.monitor.enabled and ctrl.monitor.shadow:
         return "the monitor's shadow mode runs on the host (native backend)"
-    if ctrl.monitor.enabled and ctrl.monitor.tip_stop:
-        return "the monitor's tipping watch (tip_stop) runs on the host (native backend)"
     if faults is not None and faults.any:
         return "faults (sensor noise, latency, drops, friction, servo, mass shift) run on the native backend"
     return None
@@ -145,12 +143,13 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
             finite = jnp.all(jnp.isfinite(a))
             a = jnp.where(finite, a, 0.0).astype(jnp.float32)
             mon, sent = slot.mon, a
-            ev = monitor_pure.Events(*(jnp.zeros((), bool),) * 4)
+            ev = monitor_pure.Events(*(jnp.zeros((), bool),) * len(monitor_pure.Events._fields))
             if settings.enabled:
                 m_model = slot.model if slot.mon_model is None else slot.mon_model
                 check = monitor.predicted_errors(
-                    cfg, m_model, obs.window, obs.belt_speed, a, settings.horizon, settings.backup
-                )
+                    cfg, m_model, obs.window, obs.belt_speed, a, settings.horizon, settings.backup,
+                    tip=settings.tip_stop > 0,
+                )  # fmt: skip
                 mon, sent, ev = monitor_pure.decide(cfg, settings, slot.mon, a, check, 0.0, obs.belt_speed)
             state = env.pure_step(slot.state, sent)
             window = jnp.concatenate([slot.window[1:], state.s[None]])
@@ -181,12 +180,13 @@ class _MonitorRecord:
     """The monitor's part of an episode, from the on-device events (what `episode_summary` reads of a
     host `Monitor`)."""
 
-    def __init__(self, stops, resumes, recoveries, stopping, stopped: bool):
-        self.stops = [(int(t), monitor.BALANCE) for t in stops]
+    def __init__(self, stops, resumes, recoveries, stopping, stopped: bool, tips=()):
+        tips = set(int(t) for t in tips)  # the steps of the tipping stops among `stops`
+        self.stops = [(int(t), monitor.TIP if int(t) in tips else monitor.BALANCE) for t in stops]
         self.resumes, self.recoveries = list(resumes), list(recoveries)
         self.stopping_steps = set(int(t) for t in stopping)
         self.stopped = stopped
-        self.reason = monitor.BALANCE if stopped else None
+        self.reason = (self.stops[-1][1] if self.stops else monitor.BALANCE) if stopped else None
 
     def record(self) -> dict:
         return monitor.record(self.stops, len(self.resumes), len(self.recoveries))
@@ -200,7 +200,7 @@ class _Box:
         self.actions: list = []
         self.clipped: list = []
         self.guard_steps: list[int] = []
-        self.events: dict[str, list[int]] = {"stop": [], "resume": [], "recovery": [], "stopping": []}
+        self.events: dict[str, list[int]] = {name: [] for name in monitor_pure.Events._fields}
         self.final: dict | None = None
 
     def add(self, rec: dict, i) -> None:
@@ -398,7 +398,9 @@ def run_episodes(
                 mon = None
                 if ctrl.monitor.enabled:
                     stopped = bool(mon_host.stopped[k])
-                    mon = _MonitorRecord(ev["stop"], ev["resume"], ev["recovery"], ev["stopping"], stopped)
+                    mon = _MonitorRecord(
+                        ev["stop"], ev["resume"], ev["recovery"], ev["stopping"], stopped, ev["tip"]
+                    )
                 finish(b, False, mon)
                 models.pop(b)
                 mon_models.pop(b, None)

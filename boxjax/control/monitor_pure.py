@@ -44,17 +44,13 @@ class Events(NamedTuple):
     resume: jax.Array
     recovery: jax.Array
     stopping: jax.Array  # the action sent is a stop's (`Monitor.stopping_steps`)
+    tip: jax.Array  # the stop issued at this step is a tipping stop (`MonitorConfig.tip_stop`)
 
 
 def check_supported(settings: MonitorConfig, delay: int = 0) -> None:
     """Raise ValueError naming what the pure monitor does not model (the host `Monitor` does)."""
     if settings.shadow:
         raise ValueError("the on-device monitor does not run in shadow mode (use the host loop)")
-    if settings.tip_stop:
-        raise ValueError(
-            f"the on-device monitor does not watch tipping (tip_stop={settings.tip_stop}): run it on the "
-            "native backend"
-        )
     if delay:
         raise ValueError(
             f"the on-device monitor runs with fresh frames and no loop delay, not {delay} steps of delay "
@@ -90,19 +86,22 @@ def decide(
     k_resume = m.k_sigma if m.resume_k_sigma is None else m.resume_k_sigma
     resume_margin = k_resume * jnp.asarray(sigma, jnp.float32)  # from rest: what a resume or recovery counts
     running = ~st.stopped
+    # the action and its stop predicted to bring the centre of mass near the support's edge
+    tipping = (check.go_tip - margin < m.tip_stop) if m.tip_stop > 0 else jnp.zeros((), bool)
 
-    # running: a stop when the action and a stop after it are predicted too close to the limit
-    stop_now = running & (go_error >= stop_at)
+    # running: a stop when the action and a stop after it are predicted too close to the limit, or to tip
+    balance = go_error >= stop_at
+    stop_now = running & (balance | tipping)
     balance_stops = st.balance_stops + stop_now
     final = jnp.where(stop_now, balance_stops >= m.max_stops, st.final)
     # stopped: resume, recover, or time out
     stopped_for = jnp.where(running, 0, st.stopped_for + 1)
     active = st.stopped & ~st.final
-    resume = active & still & (check.go + resume_margin < resume_below)
+    resume = active & still & (check.go + resume_margin < resume_below) & ~tipping
     recovers = (
         ~failed & (check.go_ahead + resume_margin < stop_at) & (check.go_end <= check.now - m.recover_gain)
     )
-    recovery = active & ~resume & still & m.recover & recovers
+    recovery = active & ~resume & still & m.recover & recovers & ~tipping
     timeout = active & ~resume & ~recovery & (stopped_for >= m.stop_timeout)
     final = final | timeout
     ended = st.ended | (st.stopped & ~recovery & final & still & (stopped_for >= 2))
@@ -125,5 +124,7 @@ def decide(
         stopped, stopped_for, balance_stops, final, ended, recovering, plan, plan_i, plan_n, rest_run,
         judging, recovered_from, failed,
     )  # fmt: skip
-    events = Events(stop=stop_now, resume=resume, recovery=recovery, stopping=pop & ~recovering)
+    events = Events(
+        stop=stop_now, resume=resume, recovery=recovery, stopping=pop & ~recovering, tip=stop_now & ~balance
+    )
     return new, sent, events
