@@ -188,11 +188,12 @@ def _monitor(cfg, model, window, speed, target, keys, calls: int) -> dict:
     in_flight = jnp.zeros((2, 4), jnp.float32)
     compensate = jax.jit(planning.compensate)
     res = {"horizon": horizon}
+    checked = lambda i: (cfg, model, window, speed, action, horizon)  # noqa: E731
     for name, fn, args_for in (
         ("planner_default", splan, lambda i: (keys[i], model, window, speed, target, nominal)),
-        ("check", monitor.check, lambda i: (cfg, model, window, speed, action, horizon)),
+        ("check", monitor.check, checked),
         # with the tipping watch (`MonitorConfig.tip_stop`): the stability margin along the action's rollout
-        ("check_tip", partial(monitor.check, tip=True), lambda i: (cfg, model, window, speed, action, horizon)),
+        ("check_tip", partial(monitor.check, tip=True), checked),
         ("compensate_2_steps", compensate, lambda i: (model, window, speed, in_flight)),
     ):
         t0 = time.perf_counter()
