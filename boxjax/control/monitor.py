@@ -152,8 +152,9 @@ class MonitorConfig:
     # contacts, `prior.stability_margin`), less k_sigma of the estimate's std, falls under `tip_stop` (m);
     # a stop resumes or recovers only once the action's margin is back above it. Boxes whose mass sits in
     # a corner tipped as a carriage moved out from under them, the margin falling from ~2 cm to below
-    # zero in 1-3 steps; one tipped at rest at 9 mm. At 1.5 cm, over 1,100 paired episodes of the noisy
-    # rows: lost 11 -> 5 (tipped 8 -> 3), turned 972 -> 967 (docs/results/faults.md, "Tipping").
+    # zero in 1-3 steps; one tipped at rest at 9 mm. At 1.5 cm, over 1,500 paired episodes (no fault and
+    # the noisy rows): lost 12 -> 6 (tipped 8 -> 3), turned 1,344 -> 1,339 (docs/results/faults.md,
+    # "Tipping").
     # 0: off (the check then computes no margin).
     tip_stop: float = 0.0
     # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, made when the stop is issued,
