@@ -34,6 +34,10 @@ A stop is a state, not an end:
 * An observation older than `stale_steps` control steps (the sensor dropped frames) stops the belts too,
   reason `stale_observation`, as robot stacks do with a command timeout; it resumes when fresh frames
   come back (within `stop_timeout` steps) and does not count toward `max_stops`.
+* With `tip_stop` (off by default) the check also predicts how far the box's centre of mass stays inside
+  the support of both belts along the action and its stop (`Check.go_tip`); under `tip_stop` the action
+  is stopped too, reason `tip`, counted as a balance stop, and it resumes only with an action that keeps
+  the margin.
 
 The monitor checks from the state at which the action will apply: the controller's estimate, predicted
 over the loop's delays (sensor and action latency) by `planning.compensate`. That prediction's least
@@ -450,7 +454,7 @@ class Monitor:
             self.stopped_for += 1
             if not self.final:
                 if self.reason == STALE:  # fresh frames again, and the action is safe
-                    can_go = stale <= m.stale_steps and go_error < m.stop_at * limit
+                    can_go = stale <= m.stale_steps and go_error < m.stop_at * limit and not tipping
                 else:  # known at rest, and the turn's next step and stop predicted well inside the limit
                     inside = float(check.go) + resume_margin < m.resume_below * limit
                     can_go = still and inside and not tipping
