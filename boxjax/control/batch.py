@@ -56,7 +56,7 @@ from boxjax.control import episode as controller
 from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig, for_delay
 from boxjax.control.episode import EpisodeResult
-from boxjax.control.models import monitor_model, planning_model
+from boxjax.control.models import monitor_model, planning_model, refuse_own_prior_without_belief
 from boxjax.control.monitor import Monitor
 from boxjax.control.world import World
 from boxjax.estimator.belief import decide
@@ -269,9 +269,7 @@ def run_episodes(
         raise ValueError(f"need at least one box and one key per box, got {B} boxes and {len(keys)} keys")
     if slots is not None and slots < 1:
         raise ValueError(f"slots must be >= 1, got {slots}")
-    if model is not None and ctrl.monitor.enabled and ctrl.monitor.prior_params is not None:
-        raise ValueError("the monitor's own prior (MonitorConfig.prior_params) needs a belief; a model given "
-                         "as it is (a black box) has none")  # fmt: skip
+    refuse_own_prior_without_belief(ctrl, model)
     if adapter is not None and ctrl.adapt_every < 1:
         raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
     if order not in ORDERS:

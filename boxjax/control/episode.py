@@ -22,7 +22,7 @@ from boxjax import geometry, massdist, planning, task
 from boxjax.config import Config
 from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig, for_delay
-from boxjax.control.models import monitor_model, planning_model
+from boxjax.control.models import monitor_model, planning_model, refuse_own_prior_without_belief
 from boxjax.control.monitor import Monitor
 from boxjax.control.monitor import crossing as monitor_crossing
 from boxjax.control.world import World
@@ -214,9 +214,7 @@ def run_episode(
         The controller then sees the pose through its filter (`ctrl.pose_filter`), never the simulator's
         state; the episode's outcome is the true world's. Native backend only.
     """
-    if model is not None and ctrl.monitor.enabled and ctrl.monitor.prior_params is not None:
-        raise ValueError("the monitor's own prior (MonitorConfig.prior_params) needs a belief; a model given "
-                         "as it is (a black box) has none")  # fmt: skip
+    refuse_own_prior_without_belief(ctrl, model)
     if adapter is not None and ctrl.adapt_every < 1:
         raise ValueError("an adapter needs ctrl.adapt_every >= 1 (steps between adaptations)")
     if faults.any and backend != "native":

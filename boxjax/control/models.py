@@ -52,6 +52,16 @@ def planning_model(
     return planning.Ensemble(planning.stack([on(massdist.validate(m, cfg.box), settings) for m in members]))
 
 
+def refuse_own_prior_without_belief(ctrl: ControllerConfig, model) -> None:
+    """Raise ValueError when the monitor's own prior (`MonitorConfig.prior_params`) is asked for beside
+    a model given as it is (a black box in the planner's slot): such a model has no belief to put it on."""
+    if model is not None and ctrl.monitor.enabled and ctrl.monitor.prior_params is not None:
+        raise ValueError(
+            "the monitor's own prior (MonitorConfig.prior_params) needs a belief; a model given as it is "
+            "(a black box) has none"
+        )
+
+
 def monitor_model(cfg: Config, ctrl: ControllerConfig, belief, model, force_map=None, est=None):
     """The model the runtime safety monitor predicts with: `model` (the planner's; None where the caller
     keeps it), or with `ctrl.monitor.prior_params` a physics prior of those settings on the same belief."""
