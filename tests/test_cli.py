@@ -138,6 +138,11 @@ def test_estimator_eval_on_mjx(capsys):
             "--slow-when-late is an option of the sampling planner",
         ),
         (["evaluate", "--hazard-family", "items"], "does nothing with --hazardous 0"),
+        (
+            ["evaluate", "--monitor", "off", "--tip-stop-cm", "1"],
+            "is an option of the runtime safety monitor",
+        ),
+        (["rotate", "--tip-stop-cm", "20"], "--tip-stop-cm must be in [0, 15), got 20.0"),
         (["evaluate", "--box", "b.npz", "--hazardous", "3"], "--hazardous does nothing with --box"),
         (["evaluate", "--box", "b.npz", "--safe-family", "items"], "--safe-family does nothing with --box"),
         (["evaluate", "--weights", "h.npz"], "--weights is an option of --estimator learned"),
@@ -228,6 +233,22 @@ def test_the_friction_set_reaches_the_controller():
     assert _controller_config(args).friction_set == (0.35, 0.5, 0.65)
     args = resolve(build_parser().parse_args(["evaluate"]))
     assert _controller_config(args).friction_set is None
+
+
+def test_tip_stop_sets_the_monitors_tipping_watch():
+    """--tip-stop-cm: the monitor's `tip_stop` in cm (0 turns the watch off); its default is the monitor's."""
+    from boxjax.cli.args import resolve
+    from boxjax.cli.episodes import _controller_config
+    from boxjax.cli.main import build_parser
+    from boxjax.control.monitor import MonitorConfig
+
+    def monitor(*argv):
+        return _controller_config(resolve(build_parser().parse_args(["rotate", *argv]))).monitor
+
+    assert monitor() == MonitorConfig()
+    assert monitor("--tip-stop-cm", "0").tip_stop == 0.0
+    assert monitor("--tip-stop-cm", "2.5") == MonitorConfig(tip_stop=0.025)
+    assert not monitor("--monitor", "off").enabled
 
 
 def test_samples_widen_the_planner_chosen():

@@ -179,7 +179,8 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
 def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
     """`tip_stop` 1.5 cm: an action whose margin (less the estimate's std) falls under it is stopped
     (reason "tip", counted toward max_stops); at rest it neither resumes nor recovers while the planner's
-    action still would; once an action keeps the margin it resumes. Off: the same action goes."""
+    action still would; once an action keeps the margin it resumes. Off (`tip_stop` 0): the same action
+    goes."""
     planned = np.array([0.2, -0.2, 0.0, 0.0])
     tip = lambda go_tip: monitor.Check(*_check(0.01)[:-1], np.asarray(go_tip))  # noqa: E731
     m = Monitor(CFG, MonitorConfig(tip_stop=0.015))
@@ -191,7 +192,8 @@ def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
     assert m.resumes == [] and m.recoveries == []
     assert np.array_equal(m.decide(4, planned, tip(0.02), 0.002, 0, np.zeros(2)), planned)
     assert m.resumes == [4]
-    off = Monitor(CFG, MonitorConfig())
+    assert MonitorConfig().tip_stop > 0  # on by default
+    off = Monitor(CFG, MonitorConfig(tip_stop=0.0))
     assert np.array_equal(off.decide(0, planned, tip(0.0), 0.002, 0, np.array([0.2, -0.2])), planned)
     with pytest.raises(ConfigError, match="tip_stop"):
         MonitorConfig(tip_stop=-0.01)

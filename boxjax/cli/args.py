@@ -361,6 +361,17 @@ def fault_options(p: argparse.ArgumentParser, *used_by: Condition) -> None:
     )
     option(
         p,
+        "--tip-stop-cm",
+        type=float,
+        default=1.5,
+        metavar="X",
+        check=((lambda v: 0 <= v < 15), "in [0, 15)"),
+        used_by=(*used_by, when("monitor", "on", owner="the runtime safety monitor")),
+        help="the monitor stops an action whose predicted stability margin (how far the centre of mass stays "
+        "inside the belts' support) falls under this many cm; 0: no tipping watch",
+    )
+    option(
+        p,
         "--slow-when-late",
         type=steps_or_off,
         default=2,

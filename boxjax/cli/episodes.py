@@ -161,6 +161,7 @@ def _controller_config(args):
         sampling = SamplingOptions(**steps, **widths)
     from boxjax.control import monitor
 
+    tip = {} if getattr(args, "tip_stop_cm", None) is None else {"tip_stop": args.tip_stop_cm / 100}
     return ControllerConfig(
         rule=args.rule,
         **(width if args.planner == "paper" else {}),
@@ -172,7 +173,7 @@ def _controller_config(args):
         explore_guard=args.explore_guard or None,
         explore_guard_lead=args.guard_lead,
         friction_set=tuple(args.friction_set) if getattr(args, "friction_set", None) else None,
-        monitor=monitor.OFF if getattr(args, "monitor", "on") == "off" else monitor.MonitorConfig(),
+        monitor=monitor.OFF if getattr(args, "monitor", "on") == "off" else monitor.MonitorConfig(**tip),
         delay_reference=getattr(args, "slow_when_late", 2),
     )
 
