@@ -119,6 +119,7 @@ VARIANTS = ("slip", "paper")
 NORMALS = ("pressure", "columns")
 CONTACTS = ("voxels", "polygon")
 CONES = ("gripper", "elliptic", "pyramidal")
+MARGINS = ("sampled", "exact")
 _BOX, _GRIPPER = BoxConfig(), GripperConfig()
 
 
@@ -150,6 +151,9 @@ class PriorParams:
       solves are batched); on a 2-core CPU it is 5-9 % faster, compiles in up to 50 % more time
       (`benchmarks/planner.py --structure-only`), and turned as many boxes (284 / 300 both, oracle,
       seeds 0-2). False: `lax.scan` loops (the prior before 2026-12-06).
+    margin: the static tipping margin (`stability_margin`): "sampled" (default) the support function on
+      32 directions, which over-estimates the distance near an edge (p90 7 mm, up to 19 mm); "exact"
+      the distance itself (docs/results/faults.md, "The static criterion against MuJoCo").
     """
 
     variant: str = "slip"
@@ -163,6 +167,7 @@ class PriorParams:
     load_transfer: bool = True
     carry_velocity: bool = True
     unroll: bool = True
+    margin: str = "sampled"
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -171,6 +176,8 @@ class PriorParams:
             raise ValueError(f"unknown normal-load model {self.normal!r}; choose one of {NORMALS}")
         if self.contact not in CONTACTS:
             raise ValueError(f"unknown contact model {self.contact!r}; choose one of {CONTACTS}")
+        if self.margin not in MARGINS:
+            raise ValueError(f"unknown stability margin {self.margin!r}; choose one of {MARGINS}")
         if self.cone not in CONES:
             raise ValueError(f"unknown friction cone {self.cone!r}; choose one of {CONES}")
         if self.contact == "polygon" and self.normal == "columns":
