@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import geometry, massdist
+from boxjax import massdist
 from boxjax.config import DEFAULT
 from boxjax.fileio import atomic_path
 from boxjax.prior import PriorParams, make_prior, stability_margin
@@ -30,24 +30,6 @@ from boxjax.sim import model, statics
 
 BINS_MM = (-4, -2, 0, 2, 4, 6, 8, 10, 12, 15, 20)
 TIPPED = math.radians(10.0)
-
-
-def states(rng, n: int) -> np.ndarray:
-    """(n, 5) planar states: carriages anywhere in their ranges, the box within 4 cm (y) and 5 cm (x) of
-    the belts' middle, yaw in [0, pi / 2] (the turn's range)."""
-    g = DEFAULT.gripper
-    s = np.stack(
-        [
-            rng.uniform(*g.p1_range, n),
-            rng.uniform(*g.p2_range, n),
-            rng.uniform(-0.05, 0.05, n),
-            rng.uniform(-0.04, 0.04, n),
-            rng.uniform(0.0, math.pi / 2, n),
-        ],
-        axis=1,
-    )
-    s[:, geometry.Y] += 0.5 * (s[:, geometry.P1] + s[:, geometry.P2])
-    return s.astype(np.float32)
 
 
 def binned(margins_mm, tipped) -> list[dict]:
@@ -78,7 +60,7 @@ def main(argv=None) -> dict:
         prior = make_prior(masses, None, cfg.box, cfg.gripper)
         exact = make_prior(masses, None, cfg.box, cfg.gripper, PriorParams(margin="exact"))
         m = model.box_model(cfg, truth)
-        s = states(rng, 20 * args.per_box)
+        s = statics.random_states(rng, 20 * args.per_box, cfg)
         rigid = np.asarray(margin(prior, jnp.asarray(s)))
         true = np.asarray(margin(exact, jnp.asarray(s)))
         for k in np.flatnonzero((rigid > -0.004) & (rigid < 0.02))[: args.per_box]:

@@ -327,19 +327,11 @@ def test_the_exact_stability_margin_is_the_distance_to_the_support_hull():
     normals fall between its directions)."""
     from scipy.spatial import ConvexHull
 
+    from boxjax.sim import statics
+
     rng = np.random.default_rng(3)
     n = 300
-    s = np.stack(
-        [
-            rng.uniform(*G.p1_range, n),
-            rng.uniform(*G.p2_range, n),
-            rng.uniform(-0.05, 0.05, n),
-            rng.uniform(-0.04, 0.04, n),
-            rng.uniform(0.0, np.pi / 2, n),
-        ],
-        axis=1,
-    ).astype(np.float32)
-    s[:, geometry.Y] += 0.5 * (s[:, geometry.P1] + s[:, geometry.P2])
+    s = statics.random_states(rng, n, DEFAULT)
     masses = massdist.voxel_masses(massdist.sample_hazardous(jax.random.PRNGKey(5), BOX), BOX)
     exact = prior.make_prior(masses, None, BOX, G, prior.PriorParams(margin="exact"))
     sampled = prior.make_prior(masses, None, BOX, G)

@@ -53,18 +53,7 @@ def test_the_exact_static_criterion_is_mujocos():
     for key in keys:
         dist = massdist.sample_hazardous(key, CFG.box)
         m = model.box_model(CFG, dist)
-        g = CFG.gripper
-        s = np.stack(
-            [
-                rng.uniform(*g.p1_range, 400),
-                rng.uniform(*g.p2_range, 400),
-                rng.uniform(-0.05, 0.05, 400),
-                rng.uniform(-0.04, 0.04, 400),
-                rng.uniform(0.0, math.pi / 2, 400),
-            ],
-            axis=1,
-        ).astype(np.float32)
-        s[:, 3] += 0.5 * (s[:, 0] + s[:, 1])
+        s = statics.random_states(rng, 400, CFG)
         exact = np.asarray(margin(_prior(dist), jnp.asarray(s)))
         sampled = np.asarray(margin(_prior(dist, "sampled"), jnp.asarray(s)))
         for kind, sel in (

@@ -28,6 +28,25 @@ class Held(NamedTuple):
     n_contacts: int  # box-belt contacts MuJoCo generated at the placement
 
 
+def random_states(rng: np.random.Generator, n: int, cfg: Config) -> np.ndarray:
+    """(n, 5) float32 planar states (P1, P2, x, y, yaw) a turn passes through: the carriages anywhere in
+    their ranges, the box within 4 cm (y) of the belts' middle and 5 cm (x) of the gripper's centre,
+    yaw in [0, pi / 2]."""
+    g = cfg.gripper
+    s = np.stack(
+        [
+            rng.uniform(*g.p1_range, n),
+            rng.uniform(*g.p2_range, n),
+            rng.uniform(-0.05, 0.05, n),
+            rng.uniform(-0.04, 0.04, n),
+            rng.uniform(0.0, math.pi / 2, n),
+        ],
+        axis=1,
+    )
+    s[:, geometry.Y] += 0.5 * (s[:, geometry.P1] + s[:, geometry.P2])
+    return s.astype(np.float32)
+
+
 def place_at_rest(cfg: Config, m: mujoco.MjModel, s, sink: float = 3e-4) -> tuple[mujoco.MjData, np.ndarray]:
     """(data, ctrl): the box flat at the planar state s (P1, P2, x, y, yaw), `sink` m into the belts (so
     that its contacts exist), every velocity and the belt drives at rest, the carriages at P1 / P2; ctrl
