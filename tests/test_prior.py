@@ -353,6 +353,21 @@ def test_the_exact_stability_margin_is_the_distance_to_the_support_hull():
     assert inside > 100
     assert np.all(m_sampled >= m_exact - 1e-6)
     assert np.max(m_sampled - m_exact) > 0.005
+    # "refined": between the two, within 2 mm of the exact margin and mostly on it
+    refined = prior.make_prior(masses, None, BOX, G, prior.PriorParams(margin="refined"))
+    m_refined = np.asarray(
+        jax.jit(jax.vmap(prior.stability_margin, in_axes=(None, 0)))(refined, jnp.asarray(s))
+    )
+    assert np.all(m_refined >= m_exact - 1e-6) and np.all(m_refined <= m_sampled + 1e-6)
+    assert np.max(m_refined - m_exact) < 0.002 and np.mean(m_refined - m_exact < 1e-4) > 0.95
+    # no contact at all: -1 m, whichever the margin
+    away = jnp.asarray(s[0]).at[geometry.X].set(0.9)
+    for model in (sampled, refined, exact):
+        assert float(prior.stability_margin(model, away)) == -1.0
+    # finite gradients through every margin (the planner's barrier differentiates it)
+    for model in (sampled, refined, exact):
+        grad = jax.grad(lambda st, model=model: prior.stability_margin(model, st))(jnp.asarray(s[1]))
+        assert np.all(np.isfinite(np.asarray(grad)))
 
 
 def test_polygon_contacts():
