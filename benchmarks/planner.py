@@ -11,6 +11,8 @@ Prints ONE JSON object:
     check (two 10-step prior rollouts) plus the host-side decision, and the latency compensation
     (`planning.compensate`, 2 steps), beside the default sampling planner's step in the same run;
   * the backend / device and the machine's load.
+  * the tipping barrier's static margin (`--margin-only`): the default planner's step with each
+    `PriorParams.margin`, one box and 16 vmapped, the calls interleaved;
   * robust planning over three belt frictions (`--friction-set-only`): the default planner's step with
     the prior and with the Mixture, same run.
   * the program's structure (`--structure-only`, on every kind of device present: the CPU and, where
@@ -93,6 +95,11 @@ def main() -> None:
         help="time robust planning over a friction set (ControllerConfig.friction_set) beside the default",
     )
     ap.add_argument(
+        "--margin-only",
+        action="store_true",
+        help="the default planner's step with each stability margin (PriorParams.margin), one box and 16",
+    )
+    ap.add_argument(
         "--structure-only",
         action="store_true",
         help="the planners' operations, loops, compile time and latency (STRUCTURE_PLANNERS), every device",
@@ -130,6 +137,10 @@ def main() -> None:
             d.platform: _structure(cfg, masses, window, speed, target, keys, min(calls, 100), d)
             for d in _device_kinds()
         }
+        _finish(out)
+        return
+    if args.margin_only:
+        out["margin"] = _margins(cfg, masses, window, speed, target, keys, min(calls, 200))
         _finish(out)
         return
     if args.friction_set_only:
@@ -236,6 +247,48 @@ def _friction_set(cfg, model, window, speed, target, keys, calls: int) -> dict:
             **_latency(splan, lambda i, m=m: (keys[i], m, window, speed, target, nominal), calls),
         }
     res["ratio_median"] = res["friction_set"]["median_ms"] / res["prior"]["median_ms"]
+    return res
+
+
+def _margins(cfg, masses, window, speed, target, keys, calls: int, boxes: int = 16) -> dict:
+    """The default sampling planner's step with each `PriorParams.margin` (the tipping barrier's static
+    margin on every predicted state), for one box and vmapped over `boxes` (a batched evaluation's call),
+    compile apart, the variants' calls interleaved (median)."""
+    opts = sp.SamplingOptions()
+    splan = sp.make_sampling_planner(cfg, opts)
+    nominal = sp.initial_nominal(cfg, opts, speed)
+    wide = jax.jit(jax.vmap(splan, in_axes=(0, 0, None, None, None, None)))
+    res = {}
+    fns = {}
+    for m in prior.MARGINS:
+        model = prior.make_prior(masses, None, cfg.box, cfg.gripper, prior.PriorParams(margin=m))
+        stacked = planning.stack([model] * boxes)
+        fns[m] = (
+            lambda i, model=model: splan(keys[i], model, window, speed, target, nominal),
+            lambda i, stacked=stacked: wide(
+                jax.random.split(keys[i], boxes), stacked, window, speed, target, nominal
+            ),
+        )
+        res[m] = {}
+        for kind, fn in zip(("one_box", f"{boxes}_boxes"), fns[m], strict=True):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(0))
+            res[m][kind] = {"compile_s": time.perf_counter() - t0, "times": []}
+    for i in range(calls):
+        for m in prior.MARGINS:
+            for kind, fn in zip(("one_box", f"{boxes}_boxes"), fns[m], strict=True):
+                if kind != "one_box" and i >= calls // 4:
+                    continue
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(i))
+                res[m][kind]["times"].append(time.perf_counter() - t0)
+    for m in prior.MARGINS:
+        for kind in res[m]:
+            t = 1e3 * np.asarray(res[m][kind].pop("times"))
+            res[m][kind].update(median_ms=float(np.median(t)), calls=len(t))
+    for kind in res["sampled"]:
+        for m in prior.MARGINS:
+            res[m][kind]["ratio_to_sampled"] = res[m][kind]["median_ms"] / res["sampled"][kind]["median_ms"]
     return res
 
 

@@ -21,6 +21,7 @@ from boxjax.prior.friction import dissipation, friction_force
 from boxjax.prior.predictor import (
     CONES,
     CONTACTS,
+    MARGINS,
     NORMALS,
     VARIANTS,
     PriorModel,
@@ -34,6 +35,7 @@ from boxjax.prior.predictor import (
 
 __all__ = [
     "CONES",
+    "MARGINS",
     "CONTACTS",
     "NORMALS",
     "VARIANTS",
