@@ -158,9 +158,10 @@ def stability_margin(model, s, n_directions: int = 32) -> jax.Array:
     * "refined": 2 x `n_directions` evenly spaced ones, and the normal of the chord between the support
       vertices of every two neighbouring ones: where one hull edge lies between them, the chord is that
       edge, and the value exact. Over random boxes and states within 5 cm of tipping it was exact to 0.1
-      mm in 99.3 % of them, at most 1.9 mm over; a batched planner call 1.4x the sampled one's.
+      mm in 99.3 % of them, at most 1.9 mm over; the default planner's step 1.2x the sampled one's (1.4x
+      for 16 boxes vmapped, benchmarks/planner.py --margin-only).
     * "exact": the normals of every pair of contact vertices (every edge's among them): the distance
-      itself, the reference the others are checked against; a batched planner call 2.4x.
+      itself, the reference the others are checked against; the planner's step 1.4x (2.6x for 16 boxes).
 
     No contact at all: -1 m.
 
