@@ -146,10 +146,10 @@ def stability_margin(model, s, n_directions: int = 32) -> jax.Array:
 
     The support polygon is the convex hull of both belts' contact polygons (`polygon_contacts`); a rigid
     box at rest stays up while the vertical through its centre of mass meets it (the static tipping
-    criterion; MuJoCo agrees to 2 mm: tests/test_statics.py). The signed distance to the hull's boundary
-    is the min over unit directions n of the hull's support function max_q n . q (q: contact vertices
-    relative to the centre of mass): any direction gives at least the distance, the hull's edge normals
-    give it exactly. `model.params.margin` chooses the directions:
+    criterion; in MuJoCo it holds to 2 mm of the exact margin: tests/test_statics.py). The signed distance
+    to the hull's boundary is the min over unit directions n of the hull's support function max_q n . q
+    (q: contact vertices relative to the centre of mass): any direction gives at least the distance, the
+    hull's edge normals give it exactly. `model.params.margin` chooses the directions:
 
     * "sampled" (the default; the planner's barrier and the monitor's `tip_stop` were chosen with it):
       `n_directions` evenly spaced ones. They miss the edge normals, so near an edge the value
