@@ -8,7 +8,8 @@ over its last control steps (docs/results/faults.md, "Tipping").
     python scripts/tip_replay.py ev/ [INDEX ...] [--last 12]     # default: every tipped box of ev/
 
 Prints one JSON line per step: the step, the tilt (degrees, after the step's action), the margin (mm, of the
-state the action was sent at), the carriages P1 / P2 and the box's x, y (mm) and yaw (degrees), the action.
+state the action was sent at: the controller's prior setting, `PriorParams.margin`, and the exact one), the
+carriages P1 / P2 and the box's x, y (mm) and yaw (degrees), the action.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import geometry
+from boxjax import geometry, massdist, prior
 from boxjax.config import DEFAULT
 from boxjax.control import batch
 from boxjax.control.models import planning_model
@@ -53,6 +54,10 @@ def replay(out_dir: str, index: int, last: int) -> list[dict]:
     s = np.asarray(res.trace.s, np.float32)
     model = planning_model(cfg, ctrl, truth)
     margins = np.asarray(jax.jit(jax.vmap(model.stability_margin))(jnp.asarray(s)))
+    exact = prior.make_prior(
+        massdist.voxel_masses(truth, cfg.box), None, cfg.box, cfg.gripper, prior.PriorParams(margin="exact")
+    )
+    true_margins = np.asarray(jax.jit(jax.vmap(exact.stability_margin))(jnp.asarray(s)))
     rows = []
     for t in range(max(0, len(actions) - last), len(actions)):
         rows.append(
@@ -60,6 +65,7 @@ def replay(out_dir: str, index: int, last: int) -> list[dict]:
                 "step": t,
                 "tilt_deg": round(math.degrees(tilts[t]), 1),
                 "margin_mm": round(1e3 * float(margins[t]), 1),
+                "exact_margin_mm": round(1e3 * float(true_margins[t]), 1),
                 "p_mm": [round(1e3 * float(v)) for v in s[t, [geometry.P1, geometry.P2]]],
                 "xy_mm": [round(1e3 * float(v)) for v in s[t, [geometry.X, geometry.Y]]],
                 "yaw_deg": round(math.degrees(float(s[t, geometry.YAW])), 1),
