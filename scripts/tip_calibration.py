@@ -13,6 +13,7 @@ how many tipped, by the prior's margin and by the margin inside the hull of the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -58,7 +59,7 @@ def main(argv=None) -> dict:
         truth = (massdist.sample_hazardous if i % 2 else massdist.sample)(keys[i], cfg.box)
         masses = massdist.voxel_masses(truth, cfg.box)
         prior = make_prior(masses, None, cfg.box, cfg.gripper)
-        exact = make_prior(masses, None, cfg.box, cfg.gripper, PriorParams(margin="exact"))
+        exact = dataclasses.replace(prior, params=PriorParams(margin="exact"))
         m = model.box_model(cfg, truth)
         s = statics.random_states(rng, 20 * args.per_box, cfg)
         rigid = np.asarray(margin(prior, jnp.asarray(s)))

@@ -100,13 +100,11 @@ def hold(cfg: Config, m: mujoco.MjModel, s, seconds: float = 2.0) -> Held:
     """The box placed at rest at s (`place_at_rest`), the gripper held still for `seconds`."""
     d, ctrl = place_at_rest(cfg, m, s)
     hull, n = contact_hull_margin(m, d)
-    idx = model.ids(m)
-    peak = 0.0
+    box = model.ids(m).box_body
+    quats = []
     for _ in range(round(seconds / cfg.gripper.control_dt)):
         d.ctrl[:] = ctrl
         mujoco.mj_step(m, d, nstep=cfg.gripper.n_substeps)
-        _, qx, qy, _ = d.xquat[idx.box_body]
-        peak = max(
-            peak, math.acos(min(1.0, max(-1.0, 1 - 2 * (qx * qx + qy * qy))))
-        )  # geometry.tilt_from_quat
+        quats.append(d.xquat[box].copy())
+    peak = float(np.max(np.asarray(geometry.tilt_from_quat(np.asarray(quats))), initial=0.0))
     return Held(peak, hull, n)
