@@ -5,11 +5,12 @@ bit, the same decisions and outcomes as `controller.run_episode`, exact replays,
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from boxjax import control as controller
-from boxjax import massdist
+from boxjax import massdist, prior
 from boxjax.config import DEFAULT as cfg
 from boxjax.control import batch
 from boxjax.experiments import evaluation as experiments
@@ -76,6 +77,25 @@ def test_batched_episodes_decide_and_end_as_the_one_box_path(episodes):
     assert len(u.plan_ms) == u.summary["steps"] - 45 - 1  # one planner call per MPC step (first untimed)
 
 
+def test_the_true_box_s_smallest_stability_margin_is_the_exact_one_along_its_true_states(episodes):
+    """`min_stability_margin_m`: the min over the episode's TRUE states of the exact stability margin of the
+    TRUE box, each state's computed alone (no padding), on both paths; the uniform box is never near
+    tipping, D (refused after its exploration) has its exploration's."""
+    dists, _, res, single = episodes
+    for d, r, s in zip(dists, res, single, strict=True):
+        exact = prior.make_prior(
+            massdist.voxel_masses(d, cfg.box), None, cfg.box, cfg.gripper, margin="exact"
+        )
+        for out in (r, s):
+            margins = [float(exact.stability_margin(jnp.asarray(x, jnp.float32))) for x in out.trace.s[::7]]
+            margins.append(
+                float(jnp.min(jax.vmap(exact.stability_margin)(jnp.asarray(out.trace.s, jnp.float32))))
+            )
+            assert out.summary["min_stability_margin_m"] == pytest.approx(min(margins), abs=1e-6)
+    assert res[0].summary["min_stability_margin_m"] > 0.02
+    assert res[1].summary["aborted"] and np.isfinite(res[1].summary["min_stability_margin_m"])
+
+
 def test_a_box_waiting_for_a_slot_runs_when_one_frees_longest_first():
     dists = [massdist.named(n, cfg.box) for n in ("uniform", "A", "B")]
     keys = [jax.random.PRNGKey(j) for j in range(3)]
@@ -99,7 +119,8 @@ def test_replay_re_simulates_a_batched_episode_exactly(episodes):
     for j in (0, 1):
         rep = batch.replay_episode(cfg, dists[j], keys[j], res[j].trace.actions)
         assert np.array_equal(rep.trace.s, res[j].trace.s)
-        for k in ("success", "aborted", "abort_reason", "failed_reason", "steps", "max_balance_error_m"):
+        keys_ = ("success", "aborted", "abort_reason", "failed_reason", "steps", "max_balance_error_m")
+        for k in (*keys_, "min_stability_margin_m"):
             assert rep.summary[k] == res[j].summary[k], k
     # another box: its exploration is not the one these actions sent, or the actions outlast it
     with pytest.raises(ValueError, match="ended at step|exploration.s"):
@@ -127,7 +148,7 @@ def test_unsupported_controllers_and_bad_arguments_are_named():
 SHARDED = """
 import json, jax
 from boxjax import control as controller
-from boxjax import massdist
+from boxjax import massdist, prior
 from boxjax.control import batch
 from boxjax.config import DEFAULT as cfg
 from boxjax.planners.sampling import SamplingOptions

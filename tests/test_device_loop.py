@@ -12,7 +12,7 @@ import pytest
 
 from boxjax import massdist
 from boxjax.config import DEFAULT as cfg
-from boxjax.control import ControllerConfig, batch, device_loop
+from boxjax.control import ControllerConfig, batch, device_loop, true_stability_margins
 from boxjax.estimator import explore
 from boxjax.experiments import evaluation as experiments
 from boxjax.experiments.evaluation import outcome
@@ -50,6 +50,9 @@ def test_every_episode_ends_with_an_outcome_and_the_hazard_is_refused(episodes):
             r.trace.actions[: explore.N_STEPS], explore.exploration_actions(cfg), atol=1e-6
         )
         assert not r.summary["unnoticed_crossing"]
+        # the true box's stability margin along the device's states, as on the native path
+        margins = true_stability_margins(cfg, r.truth, r.trace.s)
+        assert r.summary["min_stability_margin_m"] == float(np.min(margins))
 
 
 def test_an_mjx_evaluation_is_not_replayed(monkeypatch):

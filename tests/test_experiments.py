@@ -70,6 +70,7 @@ def test_summary_counts_and_interval():
             "steps": 200,
             "max_balance_error_m": 0.01,
             "lost_exploring": False,
+            "min_stability_margin_m": 0.03,
         },
         {
             "hazardous": False,
@@ -77,6 +78,7 @@ def test_summary_counts_and_interval():
             "steps": 90,
             "max_balance_error_m": 0.05,
             "lost_exploring": False,
+            "min_stability_margin_m": 0.0015,
         },
         {
             "hazardous": False,
@@ -84,6 +86,7 @@ def test_summary_counts_and_interval():
             "steps": 45,
             "max_balance_error_m": 0.002,
             "lost_exploring": False,
+            "min_stability_margin_m": -0.01,
         },
         {
             "hazardous": True,
@@ -108,6 +111,8 @@ def test_summary_counts_and_interval():
     assert s["max_balance_error_m"] == pytest.approx(
         {"median": 0.03, "max": 0.05}
     )  # refused ones not counted
+    # the smallest true stability margins: the refused box and the one without a value not counted
+    assert s["min_stability_margin_m"] == pytest.approx({"median": 0.01575, "min": 0.0015, "near_tips": 1})
 
 
 def test_a_box_lost_while_exploring_is_an_outcome_not_an_exception():

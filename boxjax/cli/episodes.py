@@ -375,6 +375,7 @@ def cmd_demo(args) -> dict:
         say(
             f"MPC {outcome} in {s['steps']} steps ({s['steps'] - s['exploration_steps']} after exploring), "
             f"max balance error {100 * s['max_balance_error_m']:.1f} cm, "
+            f"closest to tipping {1000 * s['min_stability_margin_m']:.0f} mm (true stability margin), "
             f"planning {s['plan_ms_median']:.2f} ms per step (median)"
         )
     summary = {

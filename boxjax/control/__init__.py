@@ -16,6 +16,7 @@ from boxjax.control.episode import (
     first_window,
     run_episode,
     timed_calls,
+    true_stability_margins,
 )
 from boxjax.control.models import planning_model
 from boxjax.estimator.belief import decide, hazard_explanation, learned_estimator, oracle_estimator
@@ -40,4 +41,5 @@ __all__ = [
     "run_episode",
     "run_episodes",
     "timed_calls",
+    "true_stability_margins",
 ]

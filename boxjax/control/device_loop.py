@@ -296,12 +296,13 @@ def run_episodes(
         wall = time.perf_counter() - t_start
         r = boxes[b]
         est, belief, why = decided[b]
+        trace = r.trace(cfg, wall)
         summary = controller.episode_summary(
             cfg, truths[b], r.final, est, belief, why, n_explore=int(n_explore[b]), lost_exploring=lost,
             wall_s=wall, plan_ms=[], estimator=estimator, monitor=mon, guard_steps=r.guard_steps,
-            balance_errors=np.asarray(r.balance),
+            balance_errors=np.asarray(r.balance), states=trace.s,
         )  # fmt: skip
-        results[b] = EpisodeResult(summary, r.trace(cfg, wall), belief, truths[b], np.zeros(0))
+        results[b] = EpisodeResult(summary, trace, belief, truths[b], np.zeros(0))
         if progress is not None:
             progress(b, results[b])
 

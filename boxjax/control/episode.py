@@ -11,14 +11,14 @@ from __future__ import annotations
 import dataclasses
 import statistics
 import time
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import geometry, massdist, planning, task
+from boxjax import geometry, massdist, planning, prior, task
 from boxjax.config import Config
 from boxjax.control import monitor
 from boxjax.control.config import ControllerConfig, for_delay
@@ -96,6 +96,32 @@ def guarded_exploration(cfg: Config, ctrl: ControllerConfig, world: World, fract
     )
 
 
+# m: an exact stability margin under which a box counts as a near tip in an evaluation's summary. At rest in
+# MuJoCo no box 2 mm or more inside by the exact margin tipped (0 of 1,083 placements; 29 of 121 between 0
+# and 2 mm did: benchmarks/results_tip_calibration.json).
+NEAR_TIP_M = 0.002
+
+
+@partial(jax.jit, static_argnames=("box", "gripper"))
+def _exact_margins(masses, states, box, gripper):
+    model = prior.make_prior(masses, None, box, gripper, prior.PriorParams(margin="exact"))
+    return jax.vmap(model.stability_margin)(states)
+
+
+def true_stability_margins(cfg: Config, truth: massdist.MassDistribution, states) -> np.ndarray:
+    """(T+1,) m: the exact stability margin (`prior.stability_margin` with margin="exact") of the TRUE box
+    at each of its TRUE planar states `states` (T+1, 5): how far its centre of mass lay inside the support
+    of both belts, the static tipping criterion MuJoCo follows to 2 mm (tests/test_statics.py). What a
+    comparison of settings can read where tips themselves are too rare to count. The box as drawn: a
+    `mass_shift_kg` fault's later shift is not in it. Padded to a multiple of 128 states (one compile for
+    most episodes)."""
+    s = np.asarray(states, np.float32).reshape(-1, 5)
+    n = len(s)
+    padded = np.concatenate([s, np.repeat(s[-1:], -n % 128, axis=0)])
+    masses = jnp.asarray(massdist.voxel_masses(truth, cfg.box), jnp.float32)
+    return np.asarray(_exact_margins(masses, jnp.asarray(padded), cfg.box, cfg.gripper))[:n]
+
+
 def timed_calls(plan_ms: list) -> list:
     """The planning times worth a median: all but the first call, which compiles (unless it is alone)."""
     return plan_ms[1:] if len(plan_ms) > 1 else plan_ms
@@ -119,6 +145,7 @@ def episode_summary(
     monitor: Monitor | None = None,
     guard_steps=(),
     balance_errors=None,
+    states=None,
 ) -> dict:
     """An episode's summary (plain data; the CLI's JSON) from the final state's `State.summary()`.
 
@@ -126,7 +153,9 @@ def episode_summary(
     the step cap while stopped, with the box still balanced and on the belts, is `safe_stop` (its
     reason in `safe_stop_reason`), neither a success nor a failure. `crossing` says whether the TRUE
     balance error (`balance_errors`, (T+1,)) ever passed the limit, `unnoticed_crossing` whether that
-    happened with no stop issued (the monitor's, or the exploration guard's at `guard_steps`)."""
+    happened with no stop issued (the monitor's, or the exploration guard's at `guard_steps`).
+    `min_stability_margin_m` is the smallest exact stability margin of the true box along its TRUE states
+    `states` (T+1, 5) (`true_stability_margins`; None without them)."""
     aborted = why is not None
     timed = timed_calls(plan_ms)
     summary = {
@@ -176,6 +205,9 @@ def episode_summary(
         crossed, unnoticed = monitor_crossing(balance_errors, cfg.task.balance_limit, stopping, guard_steps)
     summary["crossing"] = crossed
     summary["unnoticed_crossing"] = unnoticed
+    summary["min_stability_margin_m"] = (
+        None if states is None else float(np.min(true_stability_margins(cfg, truth, states)))
+    )
     return summary
 
 
@@ -362,7 +394,7 @@ def run_episode(
     summary = episode_summary(
         cfg, truth, state.summary(), est, belief, why, n_explore=n_explore, lost_exploring=lost_exploring,
         wall_s=wall, plan_ms=plan_ms, adapt_s=adapt_s, adaptations=adaptations, estimator=estimator,
-        monitor=mon, guard_steps=guard_steps, balance_errors=trace.balance_error,
+        monitor=mon, guard_steps=guard_steps, balance_errors=trace.balance_error, states=trace.s,
     )  # fmt: skip
     timed = timed_calls(plan_ms)
     return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))

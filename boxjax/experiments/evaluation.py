@@ -24,7 +24,7 @@ from boxjax import fileio, massdist, prior
 from boxjax.config import Config
 from boxjax.control import batch, device_loop, monitor
 from boxjax.control.config import ControllerConfig
-from boxjax.control.episode import run_episode
+from boxjax.control.episode import NEAR_TIP_M, run_episode
 from boxjax.control.monitor import MonitorConfig
 from boxjax.control.state_estimate import FilterConfig
 from boxjax.estimator.belief import learned_estimator
@@ -164,6 +164,7 @@ def _row(j: int, boxes: EvalBoxes, res, cfg: Config) -> dict:
         "monitor_recoveries": int(s.get("monitor_recoveries", 0)),
         "crossing": bool(s.get("crossing", False)),
         "unnoticed_crossing": bool(s.get("unnoticed_crossing", False)),
+        "min_stability_margin_m": s.get("min_stability_margin_m"),
         "plan_ms_median": s["plan_ms_median"],
         "wall_s": float(s["wall_s"]),
     }
@@ -228,7 +229,21 @@ def summarize(rows: list[dict]) -> dict:
         "max_balance_error_m": _median_max(
             r["max_balance_error_m"] for r in safe if r["outcome"] != "aborted"
         ),
+        # the true box's smallest exact stability margin over its episode (safe boxes, not refused), and
+        # how many came within NEAR_TIP_M of tipping: what tips, too rare to count, leave out
+        "min_stability_margin_m": _margins(r for r in safe if r["outcome"] != "aborted"),
         "moments_coverage": moments_coverage(rows),
+    }
+
+
+def _margins(rows) -> dict:
+    xs = [float(r["min_stability_margin_m"]) for r in rows if r.get("min_stability_margin_m") is not None]
+    if not xs:
+        return {"median": None, "min": None, "near_tips": None}
+    return {
+        "median": float(np.median(xs)),
+        "min": float(np.min(xs)),
+        "near_tips": int(sum(x < NEAR_TIP_M for x in xs)),
     }
 
 
