@@ -7,12 +7,14 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
 
-from boxjax import geometry, massdist
+from boxjax import geometry, massdist, prior
 from boxjax.config import DEFAULT, ConfigError
+from boxjax.control import true_stability_margins
 from boxjax.control.state_estimate import FilterConfig, PoseFilter, make_filter
 from boxjax.control.world import World
 from boxjax.sim import faults as F
@@ -150,6 +152,8 @@ def test_a_mass_shift_keeps_the_mass_and_moves_the_centre_of_mass_where_it_slid(
         if np.linalg.norm(d) > 1e-4:
             assert np.cos(np.arctan2(d[1], d[0]) - sh.direction) > 0.5
         assert np.all(np.linalg.eigvalsh(sh.inertia) > 0)
+        moved = massdist.mass_properties_from_masses(sh.masses, CFG.box)  # the slid voxels give them
+        np.testing.assert_allclose(np.asarray(moved.com), sh.com, atol=1e-6)
     assert len({sh.step for sh in shifts}) > 5  # the step is drawn
     assert F.mass_shift(dist, CFG, F.NONE, F.rng(jax.random.PRNGKey(0))) is None
 
@@ -167,6 +171,25 @@ def test_the_mass_shift_is_written_into_the_native_model():
     np.testing.assert_allclose(d.xipos[body] - d.xpos[body], R @ sh.com, atol=1e-9)
     np.testing.assert_allclose(m.body_mass[body], sh.mass, rtol=1e-6)
     assert sh.done
+
+
+def test_the_true_stability_margin_follows_the_slid_mass_after_its_step():
+    """`control.true_stability_margins`: the states up to the shift's step are the drawn box's, those
+    after it the slid masses' (the slide applied before that step's action), each the exact margin."""
+    dist = massdist.named("A", CFG.box)
+    sh = F.mass_shift(dist, CFG, F.Faults(mass_shift_kg=2.0, mass_shift_m=0.15), F.rng(jax.random.PRNGKey(1)))
+    sh.step = 2
+    s = np.tile([-0.1, 0.1, 0.0, 0.0, 0.3], (6, 1))  # P1, P2 at rest, the box centred, turned 0.3 rad
+    before = true_stability_margins(CFG, dist, s)
+    assert np.allclose(true_stability_margins(CFG, dist, s, sh), before)  # not applied: no change
+    sh.done = True
+    after = true_stability_margins(CFG, dist, s, sh)
+    np.testing.assert_array_equal(after[:3], before[:3])
+    slid = prior.make_prior(sh.masses, None, CFG.box, CFG.gripper, margin="exact")
+    np.testing.assert_allclose(
+        after[3:], float(slid.stability_margin(jnp.asarray(s[0], jnp.float32))), atol=1e-6
+    )
+    assert abs(after[3] - before[3]) > 1e-3  # 2 kg slid 15 cm moves the centre of mass, and the margin
 
 
 def test_the_filter_tracks_a_moving_box_through_noise_and_latency():

@@ -212,7 +212,7 @@ def _result(cfg, truth, sim: NativeBatch, b: int, rec: _Record, decided, n_explo
         cfg, truth, final, est, belief, why, n_explore=int(n_explore), lost_exploring=bool(lost),
         wall_s=wall, plan_ms=rec.plan_ms, adapt_s=rec.adapt_s, adaptations=rec.adaptations,
         estimator=estimator, monitor=rec.monitor, guard_steps=rec.guard_steps,
-        balance_errors=np.asarray(rec.balance), states=np.stack(rec.s),
+        balance_errors=np.asarray(rec.balance), states=np.stack(rec.s), mass_shift=rec.world.shift,
     )  # fmt: skip
     timed = controller.timed_calls(rec.plan_ms)
     return EpisodeResult(summary, rec.trace(cfg, wall), belief, truth, np.asarray(timed))

@@ -108,18 +108,25 @@ def _exact_margins(masses, states, box, gripper):
     return jax.vmap(model.stability_margin)(states)
 
 
-def true_stability_margins(cfg: Config, truth: massdist.MassDistribution, states) -> np.ndarray:
+def true_stability_margins(cfg: Config, truth: massdist.MassDistribution, states, shift=None) -> np.ndarray:
     """(T+1,) m: the exact stability margin (`prior.stability_margin` with margin="exact") of the TRUE box
     at each of its TRUE planar states `states` (T+1, 5): how far its centre of mass lay inside the support
     of both belts, the static tipping criterion MuJoCo follows to 2 mm (tests/test_statics.py). What a
-    comparison of settings can read where tips themselves are too rare to count. The box as drawn: a
-    `mass_shift_kg` fault's later shift is not in it. Padded to a multiple of 128 states (one compile for
-    most episodes)."""
+    comparison of settings can read where tips themselves are too rare to count. `shift`: the episode's
+    mass shift (`sim.faults.MassShift`), once applied the states after its step are those of the slid
+    masses. Padded to a multiple of 128 states (one compile for most episodes)."""
     s = np.asarray(states, np.float32).reshape(-1, 5)
     n = len(s)
-    padded = np.concatenate([s, np.repeat(s[-1:], -n % 128, axis=0)])
-    masses = jnp.asarray(massdist.voxel_masses(truth, cfg.box), jnp.float32)
-    return np.asarray(_exact_margins(masses, jnp.asarray(padded), cfg.box, cfg.gripper))[:n]
+    padded = jnp.asarray(np.concatenate([s, np.repeat(s[-1:], -n % 128, axis=0)]))
+
+    def margins(masses):
+        masses = jnp.asarray(masses, jnp.float32)
+        return np.array(_exact_margins(masses, padded, cfg.box, cfg.gripper))[:n]
+
+    out = margins(massdist.voxel_masses(truth, cfg.box))
+    if shift is not None and shift.done:  # applied before the action of step `shift.step`
+        out[shift.step + 1 :] = margins(shift.masses)[shift.step + 1 :]
+    return out
 
 
 def timed_calls(plan_ms: list) -> list:
@@ -146,6 +153,7 @@ def episode_summary(
     guard_steps=(),
     balance_errors=None,
     states=None,
+    mass_shift=None,
 ) -> dict:
     """An episode's summary (plain data; the CLI's JSON) from the final state's `State.summary()`.
 
@@ -155,7 +163,7 @@ def episode_summary(
     balance error (`balance_errors`, (T+1,)) ever passed the limit, `unnoticed_crossing` whether that
     happened with no stop issued (the monitor's, or the exploration guard's at `guard_steps`).
     `min_stability_margin_m` is the smallest exact stability margin of the true box along its TRUE states
-    `states` (T+1, 5) (`true_stability_margins`; None without them)."""
+    `states` (T+1, 5) (`true_stability_margins`, after `mass_shift` if one slid; None without states)."""
     aborted = why is not None
     timed = timed_calls(plan_ms)
     summary = {
@@ -206,7 +214,7 @@ def episode_summary(
     summary["crossing"] = crossed
     summary["unnoticed_crossing"] = unnoticed
     summary["min_stability_margin_m"] = (
-        None if states is None else float(np.min(true_stability_margins(cfg, truth, states)))
+        None if states is None else float(np.min(true_stability_margins(cfg, truth, states, mass_shift)))
     )
     return summary
 
@@ -395,6 +403,7 @@ def run_episode(
         cfg, truth, state.summary(), est, belief, why, n_explore=n_explore, lost_exploring=lost_exploring,
         wall_s=wall, plan_ms=plan_ms, adapt_s=adapt_s, adaptations=adaptations, estimator=estimator,
         monitor=mon, guard_steps=guard_steps, balance_errors=trace.balance_error, states=trace.s,
+        mass_shift=world.shift,
     )  # fmt: skip
     timed = timed_calls(plan_ms)
     return EpisodeResult(summary, trace, belief, truth, np.asarray(timed))

@@ -163,6 +163,7 @@ class MassShift:
     com: np.ndarray  # (3,) m, box frame, after the slide
     inertia: np.ndarray  # (3, 3) about the new centre of mass
     direction: float  # rad, in the box's plane
+    masses: np.ndarray  # (nx, ny, nz) kg, the voxel masses after the slide
     done: bool = False
 
     def apply(self, m: mujoco.MjModel, box_body: int) -> None:
@@ -209,6 +210,7 @@ def mass_shift(
         com=np.asarray(props.com, np.float64),
         inertia=np.asarray(props.inertia, np.float64),
         direction=direction,
+        masses=new,
     )
 
 
