@@ -367,3 +367,30 @@ def plot_fault_table(table: dict, path) -> str:
         fontsize=10,
     )
     return save_figure(fig, path)
+
+
+def plot_paired_margins(a, b, path, near_tip: float, labels=("A", "B")) -> str:
+    """Two settings' smallest true stability margins (m) on the same boxes, `a` and `b` (n,): a scatter of
+    one against the other with the diagonal and `near_tip` (where boxes begin to tip), and the histogram
+    of the paired differences b - a. Writes a PNG."""
+    a, b = 1e3 * np.asarray(a, np.float64), 1e3 * np.asarray(b, np.float64)
+    fig = _figure((10.0, 4.2))
+    ax_s, ax_h = fig.subplots(1, 2)
+    if len(a):
+        ax_s.scatter(a, b, s=8, alpha=0.6)
+        lo, hi = min(a.min(), b.min(), 0.0) - 2, max(a.max(), b.max()) + 2
+        ax_s.plot([lo, hi], [lo, hi], "k:", lw=1.0)
+        ax_s.axvline(1e3 * near_tip, color="r", ls="--", lw=0.8)
+        ax_s.axhline(1e3 * near_tip, color="r", ls="--", lw=0.8)
+        ax_h.hist(b - a, bins=40)
+        ax_h.axvline(0.0, color="k", ls=":", lw=1.0)
+    ax_s.set_xlabel(f"{labels[0]}: smallest true stability margin (mm)")
+    ax_s.set_ylabel(f"{labels[1]}: the same box and key (mm)")
+    ax_s.set_title(
+        f"{len(a)} boxes; red: {1e3 * near_tip:.0f} mm, where boxes at rest begin to tip", fontsize=9
+    )
+    ax_h.set_xlabel(
+        f"{labels[1]} - {labels[0]} (mm): positive, {labels[1]} kept the box further from tipping"
+    )
+    ax_h.set_ylabel("boxes")
+    return save_figure(fig, path)
