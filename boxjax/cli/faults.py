@@ -33,7 +33,7 @@ def cmd_fault_table(args) -> dict:
             sys.stderr.write(
                 f"{name:>28} monitor {m:>3}: turned {e['safe_success']}/{e['safe_boxes']}, safe stops "
                 f"{e['safe_stops']}, crossings {e['crossings']} (unnoticed {e['unnoticed_crossings']}), "
-                f"{wall:.0f} s\n"
+                f"near tips {(e.get('min_stability_margin_m') or {}).get('near_tips', '-')}, {wall:.0f} s\n"
             )
 
     monitors = ("on", "off") if args.monitor == "both" else (args.monitor,)

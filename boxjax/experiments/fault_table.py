@@ -187,8 +187,8 @@ def markdown(table: dict) -> str:
     """The table as markdown: one line per row and monitor setting."""
     lines = [
         "| row | monitor | safe turned | 95 % interval | safe stops | failures | crossings (unnoticed) "
-        "| false stops |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| false stops | near tips |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, entry in table["rows"].items():
         for m in MONITOR:
@@ -198,9 +198,10 @@ def markdown(table: dict) -> str:
             lo, hi = e["safe_success_ci95"]
             fails = ", ".join(f"{k} {v}" for k, v in e["failures"].items()) or "-"
             fs = entry.get("monitor_effect", {}).get("false_stops") if m == "on" else None
+            near = (e.get("min_stability_margin_m") or {}).get("near_tips")  # tables before it: "-"
             lines.append(
                 f"| {name} | {m} | {e['safe_success']}/{e['safe_boxes']} | {100 * lo:.1f}-{100 * hi:.1f} % "
                 f"| {e['safe_stops']} | {fails} | {e['crossings']} ({e['unnoticed_crossings']}) "
-                f"| {'-' if fs is None else fs} |"
+                f"| {'-' if fs is None else fs} | {'-' if near is None else near} |"
             )
     return "\n".join(lines)
