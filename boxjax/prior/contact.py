@@ -107,26 +107,38 @@ def polygon_contacts(model, s) -> Contacts:
 
     def belt(p):
         lo, hi = p - half_w, p + half_w
-        in_x = (c[:, 0] >= -half_l - tol) & (c[:, 0] <= half_l + tol)
-        in_b = in_x & (c[:, 1] >= lo - tol) & (c[:, 1] <= hi + tol)
+        # The belt's edge lines y = lo, y = hi (|x| <= L/2) and x = -+L/2 (lo <= y <= hi), each with the
+        # side the belt is on: a footprint corner is inside a line's half-plane within `tol`, inside the
+        # belt when inside all four, and an edge of the footprint crosses a line exactly where its two
+        # corners are on different sides by that same test (where its corner is within `tol` outside the
+        # line, the crossing is that corner again). One test for both, so a corner within micrometres of a
+        # belt edge is one vertex or the other, never neither
+        # (two tests, a distance to the line for the corner and a position along the edge for the
+        # crossing, once both refused a corner 1 um outside: tests/test_prior.py).
+        level = jnp.array([lo, hi, -half_l, half_l])
+        axis = jnp.array([1, 1, 0, 0])
+        keep = jnp.array(
+            [1.0, -1.0, 1.0, -1.0], jnp.float32
+        )  # the belt's side of each line: keep * (q - level) >= 0
+        coord = jnp.where(axis[:, None] == 1, c[None, :, 1], c[None, :, 0])  # (4 lines, 4 corners)
+        inside = keep[:, None] * (coord - level[:, None]) >= -tol
+        in_b = jnp.all(inside, axis=0)
         cb = jnp.array([[-half_l, lo], [half_l, lo], [half_l, hi], [-half_l, hi]], jnp.float32)
         cb_box = (cb - s[geometry.X : geometry.Y + 1]) @ rot_t.T
         in_a = (jnp.abs(cb_box[:, 0]) < hx - 1e-6) & (jnp.abs(cb_box[:, 1]) < hy - 1e-6)
-        # Footprint edges against the belt's lines y = lo, y = hi (|x| <= L/2) and x = -+L/2 (lo <= y <= hi).
-        level = jnp.array([lo, hi, -half_l, half_l])
-        axis = jnp.array([1, 1, 0, 0])
         start = c[None, :, :]  # (1, 4, 2)
         dd = d[None, :, :]
-        # (4 lines, 4 edges):
-        num = level[:, None] - jnp.where(axis[:, None] == 1, start[..., 1], start[..., 0])
+        # (4 lines, 4 edges c_k -> c_{k+1}):
+        crosses = inside != jnp.roll(inside, -1, axis=1)
+        num = level[:, None] - coord
         den = jnp.where(axis[:, None] == 1, dd[..., 1], dd[..., 0])
-        ok = jnp.abs(den) > 1e-9
+        ok = jnp.abs(den) > 1e-12
         t = num / jnp.where(ok, den, 1.0)
         pts = start + jnp.clip(t, 0.0, 1.0)[..., None] * dd  # (4, 4, 2)
         other = jnp.where(axis[:, None] == 1, pts[..., 0], pts[..., 1])
         other_lo = jnp.where(axis == 1, -half_l, lo)[:, None] - tol
         other_hi = jnp.where(axis == 1, half_l, hi)[:, None] + tol
-        valid = ok & (t > 1e-5) & (t < 1 - 1e-5) & (other >= other_lo) & (other <= other_hi)
+        valid = crosses & ok & (other >= other_lo) & (other <= other_hi)
         points = jnp.concatenate([c, cb, pts.reshape(-1, 2)])  # (24, 2)
         weights = jnp.concatenate([in_b, in_a, valid.reshape(-1)]).astype(jnp.float32)
         # The intersection of two rectangles has at most 8 vertices: keep 8 slots (the valid ones
