@@ -322,7 +322,7 @@ def test_stability_margin_hand_computed():
 
 def test_the_exact_stability_margin_is_the_distance_to_the_support_hull():
     """Reference: scipy's convex hull (Qhull) of the contact vertices. margin="exact" is the centre of mass's
-    distance to the hull's nearest edge when inside and negative when outside; the default "sampled" (32
+    distance to the hull's nearest edge when inside and negative when outside; "sampled" (32
     directions) is never below it and over-estimates it near an edge (by up to ~2 cm: the hull's edge
     normals fall between its directions)."""
     from scipy.spatial import ConvexHull
@@ -334,7 +334,7 @@ def test_the_exact_stability_margin_is_the_distance_to_the_support_hull():
     s = statics.random_states(rng, n, DEFAULT)
     masses = massdist.voxel_masses(massdist.sample_hazardous(jax.random.PRNGKey(5), BOX), BOX)
     exact = prior.make_prior(masses, None, BOX, G, prior.PriorParams(margin="exact"))
-    sampled = prior.make_prior(masses, None, BOX, G)
+    sampled = prior.make_prior(masses, None, BOX, G, prior.PriorParams(margin="sampled"))
     m_exact = np.asarray(jax.jit(jax.vmap(prior.stability_margin, in_axes=(None, 0)))(exact, jnp.asarray(s)))
     m_sampled = np.asarray(
         jax.jit(jax.vmap(prior.stability_margin, in_axes=(None, 0)))(sampled, jnp.asarray(s))

@@ -45,7 +45,8 @@ def test_the_exact_static_criterion_is_mujocos():
     """Adversarial: off-centre (hazardous) random boxes placed at random states near the edge of their
     support. MuJoCo's box-belt contacts span exactly the prior's overlap polygons (the hull margin equals
     the exact one); a box 2-6 mm inside by the exact margin stays up and one 2-20 mm outside falls. The
-    default ("sampled") margin over-estimates several of these placements by millimetres."""
+    "sampled" margin (the default before "refined") over-estimates several of these placements by
+    millimetres."""
     rng = np.random.default_rng(0)
     keys = jax.random.split(jax.random.PRNGKey(7), 3)
     margin = jax.jit(jax.vmap(prior.stability_margin, in_axes=(None, 0)))

@@ -363,7 +363,7 @@ def fault_options(p: argparse.ArgumentParser, *used_by: Condition) -> None:
         p,
         "--tip-stop-cm",
         type=float,
-        default=1.5,
+        default=0.8,
         metavar="X",
         check=((lambda v: 0 <= v < 15), "in [0, 15)"),
         used_by=(*used_by, when("monitor", "on", owner="the runtime safety monitor")),

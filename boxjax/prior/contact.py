@@ -163,15 +163,15 @@ def stability_margin(model, s, n_directions: int = 32) -> jax.Array:
     (q: contact vertices relative to the centre of mass): any direction gives at least the distance, the
     hull's edge normals give it exactly. `model.params.margin` chooses the directions:
 
-    * "sampled" (the default; the planner's barrier and the monitor's `tip_stop` were chosen with it):
+    * "sampled" (the default until 2026-12-07; the planner's barrier was chosen with it):
       `n_directions` evenly spaced ones. They miss the edge normals, so near an edge the value
       over-estimates the distance: by 4.5 mm median, 10 mm at the 90th percentile and up to 18 mm over
       placements of random boxes within 2 cm of tipping (scripts/tip_calibration.py).
-    * "refined": 2 x `n_directions` evenly spaced ones, and the normal of the chord between the support
-      vertices of every two neighbouring ones: where one hull edge lies between them, the chord is that
-      edge, and the value exact. Over random boxes and states within 5 cm of tipping it was exact to 0.1
-      mm in 99.3 % of them, at most 1.9 mm over; the default planner's step 1.2x the sampled one's (1.4x
-      for 16 boxes vmapped, benchmarks/planner.py --margin-only).
+    * "refined" (the default, with the monitor's `tip_stop` 0.8 cm): 2 x `n_directions` evenly spaced ones,
+      and the normal of the chord between the support vertices of every two neighbouring ones: where one hull
+      edge lies between them, the chord is that edge, and the value exact. Over random boxes and states within
+      5 cm of tipping it was exact to 0.1 mm in 99.3 % of them, at most 1.9 mm over; the default planner's
+      step 1.2x the sampled one's (1.4x for 16 boxes vmapped, benchmarks/planner.py --margin-only).
     * "exact": the normals of every pair of contact vertices (every edge's among them): the distance
       itself, the reference the others are checked against; the planner's step 1.4x (2.6x for 16 boxes).
 
