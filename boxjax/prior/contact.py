@@ -112,14 +112,12 @@ def polygon_contacts(model, s) -> Contacts:
         # belt when inside all four, and an edge of the footprint crosses a line exactly where its two
         # corners are on different sides by that same test (where its corner is within `tol` outside the
         # line, the crossing is that corner again). One test for both, so a corner within micrometres of a
-        # belt edge is one vertex or the other, never neither
-        # (two tests, a distance to the line for the corner and a position along the edge for the
-        # crossing, once both refused a corner 1 um outside: tests/test_prior.py).
+        # belt edge is one vertex or the other, never neither (two tests, a distance to the line for the
+        # corner and a position along the edge for the crossing, once both refused a corner 1 um outside:
+        # tests/test_prior.py). The belt's side of each line: keep * (q - level) >= 0.
         level = jnp.array([lo, hi, -half_l, half_l])
         axis = jnp.array([1, 1, 0, 0])
-        keep = jnp.array(
-            [1.0, -1.0, 1.0, -1.0], jnp.float32
-        )  # the belt's side of each line: keep * (q - level) >= 0
+        keep = jnp.array([1.0, -1.0, 1.0, -1.0], jnp.float32)
         coord = jnp.where(axis[:, None] == 1, c[None, :, 1], c[None, :, 0])  # (4 lines, 4 corners)
         inside = keep[:, None] * (coord - level[:, None]) >= -tol
         in_b = jnp.all(inside, axis=0)
