@@ -30,7 +30,7 @@ def plot(rows_a: list[dict], rows_b: list[dict], path: str) -> str:
     from boxjax.viz.plots import plot_paired_margins
 
     pairs = [(a, b) for a, b in zip(rows_a, rows_b, strict=True) if not a["hazardous"]]
-    m = paired._margin_pairs(pairs)
+    m = paired.margin_pairs(pairs)
     return plot_paired_margins(m[:, 0], m[:, 1], path, NEAR_TIP_M)
 
 

@@ -43,7 +43,7 @@ def check_same_boxes(rows_a: list[dict], rows_b: list[dict]) -> None:
             )
 
 
-def _margin_pairs(safe_pairs) -> np.ndarray:
+def margin_pairs(safe_pairs) -> np.ndarray:
     """(n, 2) m: the paired smallest stability margins of the safe boxes that neither setting refused."""
     pairs = [
         (a["min_stability_margin_m"], b["min_stability_margin_m"])
@@ -91,7 +91,7 @@ def compare(rows_a: list[dict], rows_b: list[dict]) -> dict:
         "hazards_refused": both(haz, lambda r: r["outcome"] == "aborted"),
         "margins": None,
     }
-    m = _margin_pairs(safe)
+    m = margin_pairs(safe)
     if len(m):
         d = m[:, 1] - m[:, 0]
         half = 1.959964 * float(d.std(ddof=1)) / math.sqrt(len(d)) if len(d) > 1 else float("nan")
