@@ -210,6 +210,31 @@ def test_friction_jacobian_matches_finite_differences(cone):
     assert np.allclose(np.asarray(a_mm @ u - b_mm), np.asarray(grad), rtol=1e-3, atol=1e-3)
 
 
+def test_solve3_and_its_derivatives_are_linalg_solves():
+    """The adjugate solve and its implicit derivatives (forward and reverse mode) against LAPACK's solve
+    differentiated by JAX, in float64, on well- and ill-conditioned systems like the friction step's."""
+    from boxjax.prior.contact import solve3
+
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(0)
+        for cond in (1.0, 1e3):
+            q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+            a = jnp.asarray(q @ np.diag([1.0, 0.5, 1.0 / cond]) @ q.T + 0.1 * rng.normal(size=(3, 3)) / cond)
+            b = jnp.asarray(rng.normal(size=3))
+            ref = lambda a, b: jnp.linalg.solve(a, b)  # noqa: E731
+            np.testing.assert_allclose(solve3(a, b), ref(a, b), rtol=1e-9 * cond)
+            for jac in (jax.jacrev, jax.jacfwd):
+                for arg in (0, 1):
+                    got = jac(solve3, argnums=arg)(a, b)
+                    want = jac(ref, argnums=arg)(a, b)
+                    np.testing.assert_allclose(got, want, rtol=1e-8 * cond, atol=1e-12 * cond)
+        # Vmapped, as the friction step calls it, and through a scalar loss.
+        a2 = jnp.stack([a, a.T])
+        g = jax.grad(lambda a2: jnp.sum(jax.vmap(solve3)(a2, jnp.stack([b, b])) ** 2))(a2)
+        want = jax.grad(lambda a2: jnp.sum(jnp.linalg.solve(a2, jnp.stack([b, b])[..., None]) ** 2))(a2)
+        np.testing.assert_allclose(g, want, rtol=1e-6)
+
+
 @pytest.mark.parametrize(
     "angle_deg, expect",
     [

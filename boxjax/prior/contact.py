@@ -23,13 +23,34 @@ _MAX_VERTICES = 8  # vertices of the intersection of two rectangles, at most
 _NO_TENSION_ITERATIONS = 4  # active-set passes of `normal_loads` (a box on 2 belts settles in 1-2)
 
 
-def solve3(a, b):
-    """x with a x = b for a (3, 3) by the adjugate (elementwise: cheap under vmap); det guarded."""
+def _adjugate(a):
+    """The columns c0, c1, c2 of a's adjugate (a^-1 = [c0 c1 c2] / det) and det, guarded away from 0."""
     r0, r1, r2 = a[0], a[1], a[2]
     c0, c1, c2 = jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)
     det = jnp.dot(r0, c0)
-    det = jnp.where(jnp.abs(det) > _TINY, det, jnp.where(det < 0, -_TINY, _TINY))
+    return c0, c1, c2, jnp.where(jnp.abs(det) > _TINY, det, jnp.where(det < 0, -_TINY, _TINY))
+
+
+@jax.custom_jvp
+def solve3(a, b):
+    """x with a x = b for a (3, 3) by the adjugate (elementwise: cheap under vmap); det guarded.
+
+    Differentiated implicitly, x' = a^-1 (b' - a' x), with the adjugate the value already formed (reverse
+    mode transposes it: b's cotangent l = a^-T g, a's -l x^T), instead of through the cross products: the
+    planner's gradient steps run it thousands of times per call (benchmarks/planner.py --structure-only).
+    Where det is guarded (a singular a) this is the derivative of the guarded inverse's solve."""
+    c0, c1, c2, det = _adjugate(a)
     return (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
+
+
+@solve3.defjvp
+def _solve3_jvp(primals, tangents):
+    a, b = primals
+    da, db = tangents
+    c0, c1, c2, det = _adjugate(a)
+    x = (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
+    r = db - da @ x
+    return x, (c0 * r[0] + c1 * r[1] + c2 * r[2]) / det
 
 
 def _sum_uniform_cdf(t, a, b):
