@@ -92,6 +92,14 @@ def test_the_true_box_s_smallest_stability_margin_is_the_exact_one_along_its_tru
                 float(jnp.min(jax.vmap(exact.stability_margin)(jnp.asarray(out.trace.s, jnp.float32))))
             )
             assert out.summary["min_stability_margin_m"] == pytest.approx(min(margins), abs=1e-6)
+            turn = out.summary["turn_min_stability_margin_m"]  # the states the turn's actions reached
+            n = out.summary["exploration_steps"]
+            if out.summary["aborted"]:
+                assert turn is None
+            else:
+                along = jax.vmap(exact.stability_margin)(jnp.asarray(out.trace.s[n + 1 :], jnp.float32))
+                assert turn == pytest.approx(float(jnp.min(along)), abs=1e-6)
+                assert turn >= out.summary["min_stability_margin_m"]
     assert res[0].summary["min_stability_margin_m"] > 0.02
     assert res[1].summary["aborted"] and np.isfinite(res[1].summary["min_stability_margin_m"])
 
@@ -120,7 +128,7 @@ def test_replay_re_simulates_a_batched_episode_exactly(episodes):
         rep = batch.replay_episode(cfg, dists[j], keys[j], res[j].trace.actions)
         assert np.array_equal(rep.trace.s, res[j].trace.s)
         keys_ = ("success", "aborted", "abort_reason", "failed_reason", "steps", "max_balance_error_m")
-        for k in (*keys_, "min_stability_margin_m"):
+        for k in (*keys_, "min_stability_margin_m", "turn_min_stability_margin_m"):
             assert rep.summary[k] == res[j].summary[k], k
     # another box: its exploration is not the one these actions sent, or the actions outlast it
     with pytest.raises(ValueError, match="ended at step|exploration.s"):

@@ -53,6 +53,10 @@ def test_every_episode_ends_with_an_outcome_and_the_hazard_is_refused(episodes):
         # the true box's stability margin along the device's states, as on the native path
         margins = true_stability_margins(cfg, r.truth, r.trace.s)
         assert r.summary["min_stability_margin_m"] == float(np.min(margins))
+        turned = not r.summary["aborted"]
+        assert r.summary["turn_min_stability_margin_m"] == (
+            float(np.min(margins[explore.N_STEPS + 1 :])) if turned else None
+        )
 
 
 def test_an_mjx_evaluation_is_not_replayed(monkeypatch):

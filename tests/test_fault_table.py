@@ -22,7 +22,8 @@ def _fake_evaluate(outcomes):
             {"outcome": o, "hazardous": False, "lost_exploring": False, "steps": 100,
              "max_balance_error_m": 0.01, "crossing": o == "unbalanced",
              "unnoticed_crossing": o == "unbalanced" and not on, "monitor_stops": int(o == "safe_stop"),
-             "min_stability_margin_m": 0.001 if o == "unbalanced" else 0.02}
+             "min_stability_margin_m": 0.001 if o == "unbalanced" else 0.02,
+             "turn_min_stability_margin_m": 0.001 if o == "unbalanced" else 0.03}
             for o in outcomes[on]
         ]  # fmt: skip
         return evaluation.Evaluation({**evaluation.summarize(rows), "wall_s": 1.0}, rows, None, [])
@@ -48,6 +49,8 @@ def test_false_stops_compare_the_same_boxes_with_and_without_the_monitor(monkeyp
     md = fault_table.markdown(table)
     assert "| none | on | 2/4 |" in md and md.splitlines()[-1].endswith("| 1 |")  # off: box 2 near tipping
     assert e["off"]["min_stability_margins_m"] == [0.02, 0.02, 0.001, 0.02]
+    assert e["off"]["turn_min_stability_margins_m"] == [0.03, 0.03, 0.001, 0.03]
+    assert e["off"]["turn_min_stability_margin_m"] == {"median": 0.03, "min": 0.001, "near_tips": 1}
     # resumed from the file: nothing runs again; other settings in the same file are refused
     n = len(calls)
     fault_table.run(DEFAULT, 4, 0, rows=("none",), out=str(out))

@@ -32,6 +32,8 @@ def _row(i, outcome, margin, hazardous=False, **kw):
         "com_cm": [float(i), 0.0, 0.0],
         "outcome": outcome,
         "min_stability_margin_m": margin,
+        # the turn's margin: none for a refused box, else at least the episode's (here 5 mm above it)
+        "turn_min_stability_margin_m": None if outcome == "aborted" or margin is None else margin + 0.005,
         **kw,
     }
 
@@ -73,6 +75,12 @@ def test_two_evaluations_are_compared_box_by_box():
     assert m["difference_m"]["ci95"] == pytest.approx([d.mean() - half, d.mean() + half])
     assert m["closer_to_tipping"] == {"a": 3, "b": 1}  # B kept 3 boxes further from tipping, A one
     assert m["median_m"]["a"] == pytest.approx(np.median([0.030, -0.004, 0.012, 0.001]))
+    t = c["turn_margins"]  # the same boxes, each turn's margin 5 mm above its episode's
+    assert t["boxes"] == 4 and t["difference_m"]["mean"] == pytest.approx(d.mean())
+    assert t["median_m"]["a"] == pytest.approx(m["median_m"]["a"] + 0.005) and t["near_tips"]["a"] == 1
+    # evaluations written before turn margins were recorded: the episode's margins only
+    old = [{k: v for k, v in r.items() if k != "turn_min_stability_margin_m"} for r in A]
+    assert paired.compare(old, old)["turn_margins"] is None
     # several evaluations pool by concatenating the rows
     assert paired.compare(A + A, B + B)["turned_only"] == {
         "a": 2,
@@ -100,10 +108,18 @@ def test_the_script_pairs_directories_and_refuses_bad_input(tmp_path, capsys):
     out = compare_evaluations.main([*dirs, *dirs, "--plot", str(tmp_path / "m.png")])
     assert len(out) == 3 and out[2]["pooled"] == 2 and out[2]["turned"] == {"a": 4, "b": 6}
     assert (tmp_path / "m.png").stat().st_size > 0
+    compare_evaluations.main([*dirs, "--plot", str(tmp_path / "t.png"), "--turn"])
+    assert (tmp_path / "t.png").stat().st_size > 0
+    old = tmp_path / "old"
+    old.mkdir()
+    rows = [{k: v for k, v in r.items() if k != "turn_min_stability_margin_m"} for r in A]
+    (old / "evaluation.json").write_text(json.dumps({"rows": rows}))
     for argv, msg in (
         ([dirs[0]], "in pairs"),
         ([dirs[0], str(tmp_path)], "no evaluation.json"),
         ([*dirs, "--plot", str(tmp_path / "nowhere" / "m.png")], "cannot be written"),
+        ([*dirs, "--turn"], "give --plot"),
+        ([str(old), str(old), "--plot", str(tmp_path / "o.png"), "--turn"], "no box has a turn's margin"),
     ):
         with pytest.raises(SystemExit) as e:
             compare_evaluations.main(argv)

@@ -163,7 +163,9 @@ def episode_summary(
     balance error (`balance_errors`, (T+1,)) ever passed the limit, `unnoticed_crossing` whether that
     happened with no stop issued (the monitor's, or the exploration guard's at `guard_steps`).
     `min_stability_margin_m` is the smallest exact stability margin of the true box along its TRUE states
-    `states` (T+1, 5) (`true_stability_margins`, after `mass_shift` if one slid; None without states)."""
+    `states` (T+1, 5) (`true_stability_margins`, after `mass_shift` if one slid; None without states),
+    `turn_min_stability_margin_m` the same over the states after the exploration's `n_explore` steps
+    (None when the box was refused or never turned)."""
     aborted = why is not None
     timed = timed_calls(plan_ms)
     summary = {
@@ -213,9 +215,12 @@ def episode_summary(
         crossed, unnoticed = monitor_crossing(balance_errors, cfg.task.balance_limit, stopping, guard_steps)
     summary["crossing"] = crossed
     summary["unnoticed_crossing"] = unnoticed
-    summary["min_stability_margin_m"] = (
-        None if states is None else float(np.min(true_stability_margins(cfg, truth, states, mass_shift)))
-    )
+    margins = None if states is None else true_stability_margins(cfg, truth, states, mass_shift)
+    summary["min_stability_margin_m"] = None if margins is None else float(np.min(margins))
+    # The same over the turn alone (the states its actions reached; None when the box was refused): the
+    # exploration is the same whatever the planner, so comparisons of settings read this one.
+    turned = margins is not None and not aborted and len(margins) > n_explore + 1
+    summary["turn_min_stability_margin_m"] = float(np.min(margins[n_explore + 1 :])) if turned else None
     return summary
 
 

@@ -165,6 +165,7 @@ def _row(j: int, boxes: EvalBoxes, res, cfg: Config) -> dict:
         "crossing": bool(s.get("crossing", False)),
         "unnoticed_crossing": bool(s.get("unnoticed_crossing", False)),
         "min_stability_margin_m": s.get("min_stability_margin_m"),
+        "turn_min_stability_margin_m": s.get("turn_min_stability_margin_m"),
         "plan_ms_median": s["plan_ms_median"],
         "wall_s": float(s["wall_s"]),
     }
@@ -232,12 +233,13 @@ def summarize(rows: list[dict]) -> dict:
         # the true box's smallest exact stability margin over its episode (safe boxes, not refused), and
         # how many came within NEAR_TIP_M of tipping: what tips, too rare to count, leave out
         "min_stability_margin_m": _margins(r for r in safe if r["outcome"] != "aborted"),
+        "turn_min_stability_margin_m": _margins(safe, "turn_min_stability_margin_m"),  # the turn alone
         "moments_coverage": moments_coverage(rows),
     }
 
 
-def _margins(rows) -> dict:
-    xs = [float(r["min_stability_margin_m"]) for r in rows if r.get("min_stability_margin_m") is not None]
+def _margins(rows, key: str = "min_stability_margin_m") -> dict:
+    xs = [float(r[key]) for r in rows if r.get(key) is not None]
     if not xs:
         return {"median": None, "min": None, "near_tips": None}
     return {

@@ -81,12 +81,13 @@ def _entry(ev: evaluation.Evaluation) -> dict:
         "safe_boxes", "safe_success", "safe_success_rate", "safe_success_ci95", "false_aborts",
         "safe_stops", "safe_stop_reasons", "failures", "crossings", "unnoticed_crossings", "monitor_stops",
         "monitor_recoveries", "hazardous_boxes", "hazard_aborted", "hazard_outcomes", "steps_success",
-        "max_balance_error_m", "min_stability_margin_m", "wall_s",
+        "max_balance_error_m", "min_stability_margin_m", "turn_min_stability_margin_m", "wall_s",
     )  # fmt: skip
     out = {k: s[k] for k in keep if k in s}
     out["outcomes"] = [r["outcome"] for r in ev.rows]
     out["hazardous"] = [r["hazardous"] for r in ev.rows]
     out["min_stability_margins_m"] = [r.get("min_stability_margin_m") for r in ev.rows]  # paired comparisons
+    out["turn_min_stability_margins_m"] = [r.get("turn_min_stability_margin_m") for r in ev.rows]
     return out
 
 

@@ -4,8 +4,9 @@ Slip makes these episodes chaotic: two settings on the same box often end differ
 counts of two runs differ by a few boxes even for one setting. A comparison therefore pairs the episodes
 (the same box, the same key) and asks how many boxes each setting alone turned (a two-sided exact sign
 test on those), and, for safety, how close each episode's true box came to tipping
-(`min_stability_margin_m`, paired differences with a 95 % interval): boxes lost are a few per thousand
-episodes, too rare to tell two settings apart, while every episode has a margin.
+(`min_stability_margin_m`, paired differences with a 95 % interval; `turn_min_stability_margin_m` over the
+turn alone, where the settings differ): boxes lost are a few per thousand episodes, too rare to tell two
+settings apart, while every episode has a margin.
 
     python scripts/compare_evaluations.py BASE/ OTHER/ [BASE2/ OTHER2/ ...] [--plot margins.png]
 """
@@ -43,15 +44,35 @@ def check_same_boxes(rows_a: list[dict], rows_b: list[dict]) -> None:
             )
 
 
-def margin_pairs(safe_pairs) -> np.ndarray:
-    """(n, 2) m: the paired smallest stability margins of the safe boxes that neither setting refused."""
+def margin_pairs(safe_pairs, key: str = "min_stability_margin_m") -> np.ndarray:
+    """(n, 2) m: the paired smallest stability margins (`key`: over the episode, or
+    "turn_min_stability_margin_m" over the turn alone) of the safe boxes that neither setting refused."""
     pairs = [
-        (a["min_stability_margin_m"], b["min_stability_margin_m"])
+        (a[key], b[key])
         for a, b in safe_pairs
         if a["outcome"] != "aborted" and b["outcome"] != "aborted"
-        and a.get("min_stability_margin_m") is not None and b.get("min_stability_margin_m") is not None
+        and a.get(key) is not None and b.get(key) is not None
     ]  # fmt: skip
     return np.asarray(pairs, np.float64).reshape(-1, 2)
+
+
+def _margin_differences(m: np.ndarray) -> dict | None:
+    """The paired margins `m` (n, 2) summarised: medians, near tips, B - A with its 95 % interval."""
+    if not len(m):
+        return None
+    d = m[:, 1] - m[:, 0]
+    half = 1.959964 * float(d.std(ddof=1)) / math.sqrt(len(d)) if len(d) > 1 else float("nan")
+    return {
+        "boxes": len(m),
+        "median_m": {"a": float(np.median(m[:, 0])), "b": float(np.median(m[:, 1]))},
+        "near_tips": {"a": int(np.sum(m[:, 0] < NEAR_TIP_M)), "b": int(np.sum(m[:, 1] < NEAR_TIP_M))},
+        "difference_m": {
+            "mean": float(d.mean()),
+            "ci95": [float(d.mean() - half), float(d.mean() + half)],
+            "median": float(np.median(d)),
+        },
+        "closer_to_tipping": {"a": int(np.sum(d > 1e-4)), "b": int(np.sum(d < -1e-4))},
+    }
 
 
 def compare(rows_a: list[dict], rows_b: list[dict]) -> dict:
@@ -63,7 +84,7 @@ def compare(rows_a: list[dict], rows_b: list[dict]) -> dict:
     recorded them): over the safe boxes neither refused, the median smallest stability margin of each, the
     near tips (< NEAR_TIP_M) of each, and B - A per box: mean with its 95 % interval (normal
     approximation), median, how many boxes came closer to tipping with B and how many with A (by over 0.1
-    mm)."""
+    mm); `turn_margins` the same over the turns alone (the states after the exploration)."""
     check_same_boxes(rows_a, rows_b)
     safe = [(a, b) for a, b in zip(rows_a, rows_b, strict=True) if not a["hazardous"]]
     haz = [(a, b) for a, b in zip(rows_a, rows_b, strict=True) if a["hazardous"]]
@@ -89,21 +110,9 @@ def compare(rows_a: list[dict], rows_b: list[dict]) -> dict:
         "unnoticed_crossings": both(safe, lambda r: r.get("unnoticed_crossing", False)),
         "hazardous_boxes": len(haz),
         "hazards_refused": both(haz, lambda r: r["outcome"] == "aborted"),
-        "margins": None,
+        "margins": _margin_differences(margin_pairs(safe)),
+        # the same over the turns alone: the exploration is the same under both settings (evaluations
+        # written before turn margins were recorded have none)
+        "turn_margins": _margin_differences(margin_pairs(safe, "turn_min_stability_margin_m")),
     }
-    m = margin_pairs(safe)
-    if len(m):
-        d = m[:, 1] - m[:, 0]
-        half = 1.959964 * float(d.std(ddof=1)) / math.sqrt(len(d)) if len(d) > 1 else float("nan")
-        out["margins"] = {
-            "boxes": len(m),
-            "median_m": {"a": float(np.median(m[:, 0])), "b": float(np.median(m[:, 1]))},
-            "near_tips": {"a": int(np.sum(m[:, 0] < NEAR_TIP_M)), "b": int(np.sum(m[:, 1] < NEAR_TIP_M))},
-            "difference_m": {
-                "mean": float(d.mean()),
-                "ci95": [float(d.mean() - half), float(d.mean() + half)],
-                "median": float(np.median(d)),
-            },
-            "closer_to_tipping": {"a": int(np.sum(d > 1e-4)), "b": int(np.sum(d < -1e-4))},
-        }
     return out
