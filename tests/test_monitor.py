@@ -4,6 +4,8 @@ world would lose, whatever model is in the planner's slot."""
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -174,6 +176,59 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
         jnp.stack([turn, turn]), 10, "hold", tip=True,
     )  # fmt: skip
     np.testing.assert_allclose(np.asarray(cb.go_tip), [float(c.go_tip), float(on_middle.go_tip)], atol=1e-6)
+    # the slope: how fast the margin falls with the pose where it is smallest, against central differences
+    # (a box at rest, nothing sent: every predicted state is the present)
+    rest = jnp.zeros(4, jnp.float32)
+    at_rest = monitor.check(CFG, prior, spread, belt, rest, 10, "hold", tip=True)
+    s0, h = np.asarray(spread[-1], np.float64), 1e-4
+    fd = []
+    for i in (geometry.X, geometry.Y, geometry.YAW):
+        up, down = s0.copy(), s0.copy()
+        up[i], down[i] = s0[i] + h, s0[i] - h
+        m_up, m_down = (float(prior.stability_margin(jnp.asarray(z, jnp.float32))) for z in (up, down))
+        fd.append(abs(m_up - m_down) / (2 * h))
+    np.testing.assert_allclose(np.asarray(at_rest.go_tip_slope), fd, rtol=0.05, atol=0.02)
+    assert float(np.max(at_rest.go_tip_slope)) > 0.1  # the margin does move with the pose here
+    np.testing.assert_array_equal(
+        np.asarray(monitor.check(CFG, prior, narrow, belt, turn, 10).go_tip_slope), 0
+    )
+
+
+def test_the_tipping_watch_can_count_how_fast_the_margin_falls_with_the_pose():
+    """tip_uncertainty="pose": the estimate's margin times the margin's slopes in x and y, and k_delay
+    `tip_yaw_std` per square-root step of delay times its slope in yaw, in quadrature; "y" (default): the
+    margin alone, 1:1. Known at rest, the yaw's delay term is dropped."""
+    planned, belts = np.array([0.2, -0.2, 0.0, 0.0]), np.array([0.2, -0.2])
+
+    def tip(slope):
+        return monitor.Check(*_check(0.01)[:7], np.asarray(0.03), np.asarray(slope, np.float64))
+
+    steep = (0.0, 3.0, 0.0)  # the margin falls 3 mm per mm of y: 0.03 - 3 x 0.008 under 0.008
+    assert np.array_equal(
+        Monitor(CFG, MonitorConfig()).decide(0, planned, tip(steep), 0.008, 0, belts), planned
+    )
+    pose = Monitor(CFG, MonitorConfig(tip_uncertainty="pose"))
+    assert not np.array_equal(pose.decide(0, planned, tip(steep), 0.008, 0, belts), planned)
+    assert pose.stops == [(0, TIP)]
+    flat = Monitor(CFG, MonitorConfig(tip_uncertainty="pose"))  # slope 0.5: less than 1:1
+    assert np.array_equal(flat.decide(0, planned, tip((0.5, 0.5, 0.0)), 0.008, 0, belts), planned)
+    # yaw over 4 steps of delay: k_delay 2 x 0.01 rad x 2 = 0.04 rad, times 0.6 m/rad = 24 mm
+    m = MonitorConfig(tip_uncertainty="pose", tip_yaw_std=0.01, k_sigma=0.0, delay_std=0.0)
+    late = Monitor(CFG, m, delay=4)
+    assert not np.array_equal(late.decide(0, planned, tip((0.0, 0.0, 0.6)), 0.0, 0, belts), planned)
+    c = tip((1.0, 2.0, 0.6))
+    want = math.sqrt(0.005**2 + (2 * 0.005) ** 2 + (0.6 * 2 * 0.01 * 2) ** 2)
+    assert monitor.tip_margin(m, c, 0.005, 4, False) == pytest.approx(want)
+    assert monitor.tip_margin(m, c, 0.005, 4, True) == pytest.approx(math.sqrt(5) * 0.005)  # at rest
+    assert monitor.tip_margin(MonitorConfig(), c, 0.005, 4, False) == 0.005
+    for bad, match in (
+        ({"tip_uncertainty": "xy"}, "tip_uncertainty"),
+        ({"tip_yaw_std": 0.01}, "tip_yaw_std"),  # read with "pose" only
+        ({"tip_uncertainty": "pose", "tip_stop": 0.0}, "tipping watch"),
+        ({"tip_uncertainty": "pose", "tip_yaw_std": -1.0}, "tip_yaw_std"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            MonitorConfig(**bad)
 
 
 def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
@@ -182,7 +237,7 @@ def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
     action still would; once an action keeps the margin it resumes. Off (`tip_stop` 0): the same action
     goes."""
     planned = np.array([0.2, -0.2, 0.0, 0.0])
-    tip = lambda go_tip: monitor.Check(*_check(0.01)[:-1], np.asarray(go_tip))  # noqa: E731
+    tip = lambda go_tip: monitor.Check(*_check(0.01)[:7], np.asarray(go_tip))  # noqa: E731
     m = Monitor(CFG, MonitorConfig(tip_stop=0.015))
     assert np.array_equal(m.decide(0, planned, tip(0.03), 0.002, 0, np.array([0.2, -0.2])), planned)
     assert not np.array_equal(m.decide(1, planned, tip(0.016), 0.002, 0, np.array([0.2, -0.2])), planned)

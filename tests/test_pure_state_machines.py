@@ -45,6 +45,7 @@ def _checks(rng, n, horizon):
             stop_plan=_stop_plan(rng, horizon),
             go_stop=_stop_plan(rng, horizon),
             go_tip=np.float32(rng.uniform(0.005, 0.05)),  # the smallest stability margin (m)
+            go_tip_slope=rng.uniform(0.0, 4.0, 3).astype(np.float32),  # and how fast it falls with the pose
         )
 
 
@@ -60,6 +61,8 @@ def _checks(rng, n, horizon):
         (MonitorConfig(resume_k_sigma=3.0, tip_stop=0.0), 1, ("stops", "resumes", "recoveries")),
         # tipping stops, held while the action would tip
         (MonitorConfig(tip_stop=0.012), 0, ("stops", "resumes", "recoveries", "tip_stops")),
+        # ... counting how fast the margin falls with the pose (no delay on the device: x and y alone)
+        (MonitorConfig(tip_uncertainty="pose"), 1, ("stops", "resumes", "tip_stops")),
         # final: the max_stops-th stop
         (
             MonitorConfig(horizon=4, max_stops=3, stop_timeout=60, recover_gain=0.0),

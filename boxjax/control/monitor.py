@@ -68,6 +68,7 @@ from boxjax.prior.predictor import PriorParams
 
 # Why a stop was issued; an episode that ends stopped is `safe_stop` with one of these.
 BALANCE, STALE, TIP = "balance", "stale_observation", "tip"
+TIP_UNCERTAINTY = ("y", "pose")  # `MonitorConfig.tip_uncertainty`
 REASONS = (BALANCE, STALE, TIP)
 RUN, STOP = "run", "stop"
 # The controlled stops the monitor can issue (`backup_actions`): belts to rest, carriages held where they
@@ -164,6 +165,15 @@ class MonitorConfig:
     # (tipped 1 vs 3), the true boxes 1.3 mm further from tipping (docs/results/faults.md).
     # 0: off (the check then computes no margin).
     tip_stop: float = 0.008
+    # What the tipping watch subtracts from the predicted margin for the pose it cannot see exactly: "y"
+    # the balance check's own margin (k_sigma of the estimate's y std and k_delay of the prediction's over
+    # the delay), as if the margin moved 1:1 with the pose; "pose" that margin times the margin's slope in
+    # x and y (`Check.go_tip_slope`) and k_delay of `tip_yaw_std` per square-root step of delay times its
+    # slope in yaw, added in quadrature. Near a corner patch of the support the margin moves several times
+    # faster than the pose: a box 4 steps late (seed 0, box 28) was predicted 30 mm inside as its true
+    # margin fell 21 -> 9 -> -2 mm; 5 mm of xy error moved it 12 mm, 1 degree 7 mm (docs/results/faults.md).
+    tip_uncertainty: str = "y"
+    tip_yaw_std: float = 0.0  # rad per square-root control step: the prediction's yaw error over the delay
     # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, made when the stop is issued,
     # between holding them and moving them toward the box's centre; "hold" or "recentre" always. Moving a
     # carriage drags the box on its belt with it: with one carriage at its stop, re-centring moved a
@@ -186,7 +196,15 @@ class MonitorConfig:
         for name in ("recover", "recover_until_worse"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, "must be true or false")
-        for name in ("k_sigma", "delay_std", "miss_sigmas", "recover_gain", "drag_std", "tip_stop"):
+        for name in (
+            "k_sigma",
+            "delay_std",
+            "miss_sigmas",
+            "recover_gain",
+            "drag_std",
+            "tip_stop",
+            "tip_yaw_std",
+        ):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
         if not (isinstance(self.drag_bound, int | float) and 0 <= self.drag_bound <= 1):
@@ -205,6 +223,12 @@ class MonitorConfig:
             bad("prior_params", "must be a prior.PriorParams or None")
         if self.backup not in BACKUP_CHOICES:
             bad("backup", f"must be one of {BACKUP_CHOICES}")
+        if self.tip_uncertainty not in TIP_UNCERTAINTY:
+            bad("tip_uncertainty", f"must be one of {TIP_UNCERTAINTY}")
+        if self.tip_uncertainty != "pose" and self.tip_yaw_std:
+            bad("tip_yaw_std", "is read with tip_uncertainty='pose' only")
+        if self.tip_uncertainty == "pose" and not self.tip_stop:
+            bad("tip_uncertainty", "needs the tipping watch (tip_stop > 0)")
 
 
 OFF = MonitorConfig(enabled=False)
@@ -258,6 +282,9 @@ class Check(NamedTuple):
     # () the smallest stability margin (m), now and over the horizon, of the action then its stop (the
     # `go` one); +inf when not asked for (`tip`)
     go_tip: jax.Array = np.float32(np.inf)
+    # (3,) how fast that margin falls as the box's pose is off: |d margin / d (x, y, yaw)| (m/m, m/m,
+    # m/rad) at the state where it is smallest; zeros when not asked for
+    go_tip_slope: jax.Array = np.zeros(3, np.float32)
 
 
 def predicted_errors(
@@ -282,13 +309,18 @@ def predicted_errors(
     worst = jnp.max(errors, axis=2)  # (go | stop, V)
     go_b, stop_b = jnp.argmin(worst[0]), jnp.argmin(worst[1])
     now = jnp.max(jax.vmap(geometry.balance_error)(starts[:, -1]))
-    go_tip = jnp.float32(jnp.inf)
+    go_tip, go_tip_slope = jnp.float32(jnp.inf), jnp.zeros(3, jnp.float32)
     if tip:
         go_states = states[:, go_b]  # (windows, horizon, 5): the action, then its stop
-        margins = jax.vmap(jax.vmap(model.stability_margin))(go_states)
-        now_margin = jax.vmap(model.stability_margin)(starts[:, -1])
-        go_tip = jnp.minimum(jnp.min(margins), jnp.min(now_margin))
+        watched = jnp.concatenate([starts[:, -1:], go_states.astype(starts.dtype)], 1).reshape(-1, 5)
+        margins = jax.vmap(model.stability_margin)(watched)  # now and along the rollouts
+        at = jnp.argmin(jnp.where(jnp.isnan(margins), -jnp.inf, margins))
+        go_tip = margins[at]
         go_tip = jnp.where(jnp.isfinite(go_tip), go_tip, -jnp.inf)  # a diverged model: not believed safe
+        slope = jnp.abs(jax.grad(model.stability_margin)(watched[at]))[
+            jnp.array([geometry.X, geometry.Y, geometry.YAW])
+        ]
+        go_tip_slope = jnp.where(jnp.isfinite(slope), slope, 0.0).astype(jnp.float32)
     return Check(
         go=jnp.maximum(worst[0, go_b], now),
         stop=jnp.maximum(worst[1, stop_b], now),
@@ -298,6 +330,7 @@ def predicted_errors(
         stop_plan=backups[stop_b],
         go_stop=backups[0],
         go_tip=go_tip,
+        go_tip_slope=go_tip_slope,
     )
 
 
@@ -443,7 +476,10 @@ class Monitor:
         go_error = float(check.go) + margin
         k_resume = m.k_sigma if m.resume_k_sigma is None else m.resume_k_sigma
         resume_margin = math.sqrt((k_resume * sigma) ** 2 + k_delay**2 * delay_var)
-        tipping = m.tip_stop > 0 and float(check.go_tip) - margin < m.tip_stop
+        tipping = (
+            m.tip_stop > 0
+            and float(check.go_tip) - tip_margin(m, check, margin, self.delay, still) < m.tip_stop
+        )
         if m.shadow:
             if stale > m.stale_steps or go_error >= m.stop_at * limit or tipping:
                 self.would_stop.append(t)
@@ -541,6 +577,19 @@ def record(stops, resumes: int, recoveries: int, would_stop=None) -> dict:
         "monitor_recoveries": recoveries,
         **({"monitor_would_stop": would_stop} if would_stop is not None else {}),
     }
+
+
+def tip_margin(m: MonitorConfig, check: Check, margin, delay: int, still):
+    """What the tipping watch subtracts from `check.go_tip` (`MonitorConfig.tip_uncertainty`): `margin`,
+    the balance check's for the estimate's y, alone ("y"), or ("pose") that margin in x and y and k_delay
+    `tip_yaw_std` per square-root step of `delay` in yaw (none when the gripper is known at rest: `still`),
+    each times the margin's slope (`Check.go_tip_slope`), in quadrature. numpy or jnp alike."""
+    if m.tip_uncertainty == "y":
+        return margin
+    k_delay = m.k_sigma if m.k_delay is None else m.k_delay
+    yaw = k_delay * m.tip_yaw_std * math.sqrt(delay) * (1.0 - still)
+    sx, sy, syaw = check.go_tip_slope[0], check.go_tip_slope[1], check.go_tip_slope[2]
+    return ((sx * margin) ** 2 + (sy * margin) ** 2 + (syaw * yaw) ** 2) ** 0.5
 
 
 def recovery_worse(before, after, tolerance):

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from boxjax.config import Config
-from boxjax.control.monitor import Check, MonitorConfig, recovery_worse
+from boxjax.control.monitor import Check, MonitorConfig, recovery_worse, tip_margin
 
 
 class MonitorState(NamedTuple):
@@ -87,7 +87,8 @@ def decide(
     resume_margin = k_resume * jnp.asarray(sigma, jnp.float32)  # from rest: what a resume or recovery counts
     running = ~st.stopped
     # the action and its stop predicted to bring the centre of mass near the support's edge
-    tipping = (check.go_tip - margin < m.tip_stop) if m.tip_stop > 0 else jnp.zeros((), bool)
+    tip = tip_margin(m, check, margin, 0, still)  # no delay on the device
+    tipping = (check.go_tip - tip < m.tip_stop) if m.tip_stop > 0 else jnp.zeros((), bool)
 
     # running: a stop when the action and a stop after it are predicted too close to the limit, or to tip
     balance = go_error >= stop_at
