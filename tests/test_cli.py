@@ -143,6 +143,10 @@ def test_estimator_eval_on_mjx(capsys):
             "is an option of the runtime safety monitor",
         ),
         (["rotate", "--tip-stop-cm", "20"], "--tip-stop-cm must be in [0, 15), got 20.0"),
+        (
+            ["evaluate", "--monitor", "off", "--tip-uncertainty", "pose"],
+            "is an option of the runtime safety monitor",
+        ),
         (["evaluate", "--box", "b.npz", "--hazardous", "3"], "--hazardous does nothing with --box"),
         (["evaluate", "--box", "b.npz", "--safe-family", "items"], "--safe-family does nothing with --box"),
         (["evaluate", "--weights", "h.npz"], "--weights is an option of --estimator learned"),
@@ -249,6 +253,9 @@ def test_tip_stop_sets_the_monitors_tipping_watch():
     assert monitor("--tip-stop-cm", "0").tip_stop == 0.0
     assert monitor("--tip-stop-cm", "2.5") == MonitorConfig(tip_stop=0.025)
     assert not monitor("--monitor", "off").enabled
+    assert monitor("--tip-uncertainty", "pose") == MonitorConfig(tip_uncertainty="pose")
+    with pytest.raises(ValueError, match="tipping watch"):  # the watch it would widen is off
+        monitor("--tip-uncertainty", "pose", "--tip-stop-cm", "0")
 
 
 def test_samples_widen_the_planner_chosen():

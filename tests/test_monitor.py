@@ -223,7 +223,6 @@ def test_the_tipping_watch_can_count_how_fast_the_margin_falls_with_the_pose():
     assert monitor.tip_margin(MonitorConfig(), c, 0.005, 4, False) == 0.005
     for bad, match in (
         ({"tip_uncertainty": "xy"}, "tip_uncertainty"),
-        ({"tip_yaw_std": 0.01}, "tip_yaw_std"),  # read with "pose" only
         ({"tip_uncertainty": "pose", "tip_stop": 0.0}, "tipping watch"),
         ({"tip_uncertainty": "pose", "tip_yaw_std": -1.0}, "tip_yaw_std"),
     ):

@@ -372,6 +372,16 @@ def fault_options(p: argparse.ArgumentParser, *used_by: Condition) -> None:
     )
     option(
         p,
+        "--tip-uncertainty",
+        default="y",
+        choices=("y", "pose"),
+        used_by=(*used_by, when("monitor", "on", owner="the runtime safety monitor")),
+        help="what the tipping watch subtracts for the pose it cannot see: y: the balance check's margin, "
+        "1:1; pose: that margin and the yaw's over the delay, each times how fast the stability margin falls "
+        "with the pose there",
+    )
+    option(
+        p,
         "--slow-when-late",
         type=steps_or_off,
         default=2,

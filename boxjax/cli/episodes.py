@@ -162,6 +162,8 @@ def _controller_config(args):
     from boxjax.control import monitor
 
     tip = {} if getattr(args, "tip_stop_cm", None) is None else {"tip_stop": args.tip_stop_cm / 100}
+    if getattr(args, "tip_uncertainty", None):
+        tip["tip_uncertainty"] = args.tip_uncertainty
     return ControllerConfig(
         rule=args.rule,
         **(width if args.planner == "paper" else {}),

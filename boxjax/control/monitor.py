@@ -173,7 +173,10 @@ class MonitorConfig:
     # faster than the pose: a box 4 steps late (seed 0, box 28) was predicted 30 mm inside as its true
     # margin fell 21 -> 9 -> -2 mm; 5 mm of xy error moved it 12 mm, 1 degree 7 mm (docs/results/faults.md).
     tip_uncertainty: str = "y"
-    tip_yaw_std: float = 0.0  # rad per square-root control step: the prediction's yaw error over the delay
+    # rad per square-root control step: the std of the latency compensation's yaw error over the delay
+    # ("pose" only), 0.31-0.36 degrees per square-root step over 1, 2 and 4 steps of delay along 40 turns
+    # of the 4-step latency row (x 0.6-0.9 mm, y 1.4-1.6 mm, as `delay_std`; docs/results/faults.md)
+    tip_yaw_std: float = 0.0061
     # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, made when the stop is issued,
     # between holding them and moving them toward the box's centre; "hold" or "recentre" always. Moving a
     # carriage drags the box on its belt with it: with one carriage at its stop, re-centring moved a
@@ -225,8 +228,6 @@ class MonitorConfig:
             bad("backup", f"must be one of {BACKUP_CHOICES}")
         if self.tip_uncertainty not in TIP_UNCERTAINTY:
             bad("tip_uncertainty", f"must be one of {TIP_UNCERTAINTY}")
-        if self.tip_uncertainty != "pose" and self.tip_yaw_std:
-            bad("tip_yaw_std", "is read with tip_uncertainty='pose' only")
         if self.tip_uncertainty == "pose" and not self.tip_stop:
             bad("tip_uncertainty", "needs the tipping watch (tip_stop > 0)")
 
