@@ -706,3 +706,28 @@ def test_the_monitor_can_predict_with_its_own_prior_on_the_planners_belief(monke
     assert used == [own]
     with pytest.raises(ConfigError, match="prior_params"):
         MonitorConfig(prior_params={"carriage_omega": 30.0})
+
+
+def test_the_compensation_error_script_summarises_per_square_root_step_and_refuses_bad_input(
+    tmp_path, capsys
+):
+    """scripts/compensation_error.py (what `delay_std` and `tip_yaw_std` were measured with): its summary
+    of known errors, and an evaluation without recorded actions or a bad count refused with status 2."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import compensation_error
+
+    rng = np.random.default_rng(0)
+    e = rng.normal(0, 1, (20000, 3)) * np.array([0.002, 0.004, math.radians(0.8)])
+    out = compensation_error.summary({4: e})["4"]
+    assert out["samples"] == 20000
+    assert out["std_per_sqrt_step"]["y_mm"] == pytest.approx(2.0, rel=0.03)
+    assert out["std_per_sqrt_step"]["yaw_deg"] == pytest.approx(0.4, rel=0.03)
+    assert out["p99_abs"]["x_mm"] == pytest.approx(2 * 2.576, rel=0.05)
+    (tmp_path / "evaluation.json").write_text('{"rows": []}')
+    for argv, msg in (([str(tmp_path)], str(tmp_path)), ([str(tmp_path), "--boxes", "0"], "must be >= 1")):
+        with pytest.raises(SystemExit) as exc:
+            compensation_error.main(argv)
+        assert exc.value.code == 2 and msg in capsys.readouterr().err
