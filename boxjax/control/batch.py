@@ -436,7 +436,7 @@ def run_episodes(
                     seen_b, held = present_b(m_b, put(w), put(belt), flying, obs_b.window)
                 checks = monitor.check_batch(
                     cfg, m_b, seen_b, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
-                    ctrl.monitor.horizon, ctrl.monitor.backup, held, tip=ctrl.monitor.tip_stop > 0,
+                    ctrl.monitor.horizon, ctrl.monitor.backup, held, tip=monitor.tip_watch(ctrl.monitor),
                 )  # fmt: skip
                 checks, belts = monitor.to_host(checks), np.asarray(obs_b.belt_speed)
                 newest = np.asarray(seen_b[:, -1])  # predicted for when the actions apply

@@ -148,7 +148,7 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
                 m_model = slot.model if slot.mon_model is None else slot.mon_model
                 check = monitor.predicted_errors(
                     cfg, m_model, obs.window, obs.belt_speed, a, settings.horizon, settings.backup,
-                    tip=settings.tip_stop > 0,
+                    tip=monitor.tip_watch(settings),
                 )  # fmt: skip
                 mon, sent, ev = monitor_pure.decide(cfg, settings, slot.mon, a, check, 0.0, obs.belt_speed)
             state = env.pure_step(slot.state, sent)

@@ -377,7 +377,7 @@ def run_episode(
                     ctrl.monitor.horizon,
                     ctrl.monitor.backup,
                     held,
-                    tip=ctrl.monitor.tip_stop > 0,
+                    tip=monitor.tip_watch(ctrl.monitor),
                 )
                 a = mon.decide(
                     len(actions),

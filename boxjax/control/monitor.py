@@ -297,7 +297,8 @@ def predicted_errors(
     present (`planning.compensate_held`: the carriage moves over the delay not dragging the box); every
     error is then the worse of the two windows' (`MonitorConfig.drag_bound`). `tip`: also the smallest
     stability margin of the action's rollout (`Check.go_tip`, the worse window's; the model's
-    `stability_margin`)."""
+    `stability_margin`); "slope": and how fast it falls with the pose there (`Check.go_tip_slope`;
+    `tip_watch` says which the settings need)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
@@ -318,10 +319,11 @@ def predicted_errors(
         at = jnp.argmin(jnp.where(jnp.isnan(margins), -jnp.inf, margins))
         go_tip = margins[at]
         go_tip = jnp.where(jnp.isfinite(go_tip), go_tip, -jnp.inf)  # a diverged model: not believed safe
-        slope = jnp.abs(jax.grad(model.stability_margin)(watched[at]))[
-            jnp.array([geometry.X, geometry.Y, geometry.YAW])
-        ]
-        go_tip_slope = jnp.where(jnp.isfinite(slope), slope, 0.0).astype(jnp.float32)
+        if tip == "slope":  # what tip_uncertainty "pose" reads (`tip_watch`)
+            slope = jnp.abs(jax.grad(model.stability_margin)(watched[at]))[
+                jnp.array([geometry.X, geometry.Y, geometry.YAW])
+            ]
+            go_tip_slope = jnp.where(jnp.isfinite(slope), slope, 0.0).astype(jnp.float32)
     return Check(
         go=jnp.maximum(worst[0, go_b], now),
         stop=jnp.maximum(worst[1, stop_b], now),
@@ -578,6 +580,14 @@ def record(stops, resumes: int, recoveries: int, would_stop=None) -> dict:
         "monitor_recoveries": recoveries,
         **({"monitor_would_stop": would_stop} if would_stop is not None else {}),
     }
+
+
+def tip_watch(m: MonitorConfig):
+    """The check's `tip` for these settings: False (no tipping watch), True (the margin) or "slope" (the
+    margin and its slope, for tip_uncertainty "pose")."""
+    if m.tip_stop <= 0:
+        return False
+    return "slope" if m.tip_uncertainty == "pose" else True
 
 
 def tip_margin(m: MonitorConfig, check: Check, margin, delay: int, still):

@@ -45,7 +45,7 @@ import numpy as np
 
 from boxjax import planning
 from boxjax.config import DEFAULT, Config, TaskConfig
-from boxjax.control.monitor import Monitor, MonitorConfig, present_one, to_host
+from boxjax.control.monitor import Monitor, MonitorConfig, present_one, tip_watch, to_host
 from boxjax.control.monitor import check as monitor_check
 from boxjax.control.state_estimate import FilterConfig, PoseFilter, make_filter, state_line, state_window
 from boxjax.robot.adapter import (
@@ -137,7 +137,7 @@ class PlannerStep:
                 self.monitor.m.horizon,
                 self.monitor.m.backup,
                 held,
-                tip=self.monitor.m.tip_stop > 0,
+                tip=tip_watch(self.monitor.m),
             )
             sigma = self.sigma() if callable(self.sigma) else self.sigma
             a = self.monitor.decide(self.t, a, to_host(check), sigma, 0, np.asarray(obs.belt_speed))
