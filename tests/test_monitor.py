@@ -179,11 +179,9 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
     # the slope: how fast the margin falls with the pose where it is smallest, against central differences
     # (a box at rest, nothing sent: every predicted state is the present)
     rest = jnp.zeros(4, jnp.float32)
-    at_rest = monitor.check(CFG, prior, spread, belt, rest, 10, "hold", tip="slope")
+    at_rest = monitor.check(CFG, prior, spread, belt, rest, 2, "hold", tip="slope")  # 2 steps: compiles fast
     np.testing.assert_array_equal(np.asarray(c.go_tip_slope), 0)  # the margin alone: no slope computed
-    assert float(at_rest.go_tip) == float(
-        monitor.check(CFG, prior, spread, belt, rest, 10, "hold", tip=True).go_tip
-    )
+    assert float(at_rest.go_tip) == pytest.approx(float(prior.stability_margin(spread[-1])), abs=1e-4)
     assert (
         monitor.tip_watch(MonitorConfig()) is True and monitor.tip_watch(MonitorConfig(tip_stop=0.0)) is False
     )
