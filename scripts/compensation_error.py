@@ -35,6 +35,7 @@ from boxjax.experiments import evaluation as experiments
 from boxjax.fileio import atomic_path, check_writable_dir
 
 MOVING = 0.01  # m/s: a step counts when a belt runs faster than this
+PAD = 256  # the turn's steps padded to a multiple of this: the jitted compensation compiles once or twice
 
 
 def _present(model, windows, belts, actions):
@@ -66,12 +67,11 @@ def errors(out_dir: str, boxes: int, delays) -> dict:
         model = planning_model(cfg, ctrl, truth)
         for d in delays:
             ts = np.arange(explore.N_STEPS + d + 2, len(actions))  # the turn's steps
-            windows = np.stack([s[t - d - 2 : t - d + 1] for t in ts])
-            sent = np.stack([actions[t - d : t] for t in ts]).astype(np.float32)
-            present = np.asarray(
-                PRESENT(model, jnp.asarray(windows), jnp.asarray(belts[ts - d]), jnp.asarray(sent))
-            )
-            e = (present - s[ts])[:, [geometry.X, geometry.Y, geometry.YAW]]
+            padded = np.concatenate([ts, np.repeat(ts[-1:], -len(ts) % PAD)])  # one compile for most turns
+            windows = np.stack([s[t - d - 2 : t - d + 1] for t in padded])
+            sent = np.stack([actions[t - d : t] for t in padded]).astype(np.float32)
+            present = PRESENT(model, jnp.asarray(windows), jnp.asarray(belts[padded - d]), jnp.asarray(sent))
+            e = (np.asarray(present)[: len(ts)] - s[ts])[:, [geometry.X, geometry.Y, geometry.YAW]]
             out[d].append(e[np.abs(belts[ts]).max(axis=1) > MOVING])
         used += 1
         print(f"box {i}: {len(actions)} steps", file=sys.stderr)

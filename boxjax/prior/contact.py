@@ -39,18 +39,21 @@ def solve3(a, b):
     mode transposes it: b's cotangent l = a^-T g, a's -l x^T), instead of through the cross products: the
     planner's gradient steps run it thousands of times per call (benchmarks/planner.py --structure-only).
     Where det is guarded (a singular a) this is the derivative of the guarded inverse's solve."""
-    c0, c1, c2, det = _adjugate(a)
-    return (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
+    return _apply_inverse(*_adjugate(a), b)
+
+
+def _apply_inverse(c0, c1, c2, det, v):
+    """a^-1 v from a's adjugate columns and det (`_adjugate`)."""
+    return (c0 * v[0] + c1 * v[1] + c2 * v[2]) / det
 
 
 @solve3.defjvp
 def _solve3_jvp(primals, tangents):
     a, b = primals
     da, db = tangents
-    c0, c1, c2, det = _adjugate(a)
-    x = (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
-    r = db - da @ x
-    return x, (c0 * r[0] + c1 * r[1] + c2 * r[2]) / det
+    adj = _adjugate(a)
+    x = _apply_inverse(*adj, b)
+    return x, _apply_inverse(*adj, db - da @ x)
 
 
 def _sum_uniform_cdf(t, a, b):
