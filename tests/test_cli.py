@@ -254,6 +254,7 @@ def test_tip_stop_sets_the_monitors_tipping_watch():
     assert monitor("--tip-stop-cm", "2.5") == MonitorConfig(tip_stop=0.025)
     assert not monitor("--monitor", "off").enabled
     assert monitor("--tip-uncertainty", "pose") == MonitorConfig(tip_uncertainty="pose")
+    assert monitor("--tip-uncertainty", "sigma") == MonitorConfig(tip_uncertainty="sigma")
     with pytest.raises(ValueError, match="tipping watch"):  # the watch it would widen is off
         monitor("--tip-uncertainty", "pose", "--tip-stop-cm", "0")
 

@@ -236,6 +236,79 @@ def test_the_tipping_watch_can_count_how_fast_the_margin_falls_with_the_pose():
             MonitorConfig(**bad)
 
 
+def test_the_sigma_watch_sees_a_cliff_that_the_slope_cannot():
+    """Adversarial: box C at rest on belts spread far apart, 28 mm to one side. The margin is 82 mm (the
+    box's own edge: a plateau, its slope zero), so the "pose" watch subtracts nothing; 6 mm further to the
+    side the far belt's patch is gone and the centre of mass is outside the support. tip_uncertainty
+    "sigma" evaluates the margin at the spread's sigma points (the smallest of them, recomputed here
+    one by one) and stops; with no spread it is the plain margin."""
+    prior = make_prior(massdist.voxel_masses(massdist.named("C", CFG.box), CFG.box))
+    s = _state(p1=-0.1747, p2=0.1685, x=-0.0479, y=-0.0284, yaw=0.0108)
+    window, belt, rest = planning.initial_window(s), jnp.zeros(2), jnp.zeros(4, jnp.float32)
+    spread = np.array([0.006, 0.006, math.radians(1.5)], np.float32)
+    slope = monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="slope")
+    sigma = monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="sigma", tip_spread=spread)
+    none = monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="sigma", tip_spread=np.zeros(3))
+    assert float(none.go_tip) == pytest.approx(float(slope.go_tip), abs=1e-6) and float(slope.go_tip) > 0.05
+    assert float(np.max(slope.go_tip_slope)) < 1e-3  # on the plateau
+    points = [np.asarray(s, np.float64) + np.r_[0.0, 0.0, p * spread] for p in monitor.SIGMA_POINTS]
+    direct = min(float(prior.stability_margin(jnp.asarray(z, jnp.float32))) for z in points)
+    assert direct < 0  # a box that far off tips
+    assert float(sigma.go_tip) == pytest.approx(direct, abs=1e-4)  # at rest: every state is the present
+    assert monitor.tip_watch(MonitorConfig(tip_uncertainty="sigma")) == "sigma"
+    with pytest.raises(ValueError, match="tip_spread"):
+        monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="sigma")
+    # the decisions: "pose" lets the box go, "sigma" stops it (nothing more subtracted: counted already)
+    planned, belts = np.array([0.1, -0.1, 0.0, 0.0]), np.zeros(2)
+    pose = Monitor(CFG, MonitorConfig(tip_uncertainty="pose"))
+    assert np.array_equal(pose.decide(0, planned, monitor.to_host(slope), 0.006, 0, belts), planned)
+    sig = Monitor(CFG, MonitorConfig(tip_uncertainty="sigma"))
+    assert monitor.tip_margin(sig.m, monitor.to_host(sigma), 0.006, 0, False) == 0
+    assert not np.array_equal(sig.decide(0, planned, monitor.to_host(sigma), 0.006, 0, belts), planned)
+    assert sig.stops == [(0, TIP)]
+    # the batched check gives each box its own spread's
+    cb = monitor.check_batch(
+        CFG, planning.stack([prior, prior]), jnp.stack([window, window]), jnp.stack([belt, belt]),
+        jnp.stack([rest, rest]), 2, "hold", tip="sigma", tip_spread=np.stack([spread, np.zeros(3)]),
+    )  # fmt: skip
+    np.testing.assert_allclose(np.asarray(cb.go_tip), [float(sigma.go_tip), float(none.go_tip)], atol=1e-6)
+
+
+def test_the_tip_spread_is_the_margin_decide_counts_and_changes_nothing():
+    """`Monitor.tip_spread` before a step's `decide`: in x and y the balance check's margin that decide
+    then adds (a stop exactly where go + that margin reaches stop_at, with the prediction's misses over the
+    delay counted), in yaw k_sigma of the estimate's yaw std and k_delay `tip_yaw_std` per square-root
+    step of delay (only the estimate's once known at rest); previewing changes no decision."""
+    m = MonitorConfig(tip_uncertainty="sigma", miss_sigmas=1.0)
+    planned, moving = np.array([0.2, -0.2, 0.0, 0.0]), np.array([0.2, -0.2])
+    a, b = Monitor(CFG, m, delay=2), Monitor(CFG, m, delay=2)
+    for t in range(6):  # the model misses by 3-8 mm a step over the delay
+        measured = _state(y=0.001 * t)
+        predicted = _state(y=0.001 * t + 0.003 + 0.001 * t)
+        spread = a.tip_spread(0.002, moving, measured, predicted, yaw_sigma=0.01)
+        k = m.k_sigma if m.k_delay is None else m.k_delay
+        assert spread[2] == pytest.approx(
+            math.hypot(m.k_sigma * 0.01, k * m.tip_yaw_std * math.sqrt(2)), rel=1e-5
+        )
+        assert spread[0] == spread[1] >= m.k_sigma * 0.002
+        go = m.stop_at * LIMIT - float(spread[1])
+        for mon in (a, b):  # just under the threshold: both go, the previewed one and the other
+            sent = mon.decide(t, planned, _check(go - 1e-5), 0.002, 0, moving, measured, predicted)
+            assert np.array_equal(sent, planned), t
+    assert spread[1] > 0.006  # the misses widened it
+    c = Monitor(CFG, m, delay=2)
+    for t in range(6):  # the same steps, just over the threshold at the last (its misses counted)
+        measured, predicted = _state(y=0.001 * t), _state(y=0.002 * t + 0.003)
+        go = m.stop_at * LIMIT - float(c.tip_spread(0.002, moving, measured, predicted)[1])
+        c.decide(t, planned, _check(go + (1e-5 if t == 5 else -1e-5)), 0.002, 0, moving, measured, predicted)
+    assert c.stops == [(5, BALANCE)]
+    rest = Monitor(CFG, m, delay=2)
+    for t in range(4):
+        rest.decide(t, np.zeros(4), _check(0.0), 0.002, 0, np.zeros(2))
+    at_rest = rest.tip_spread(0.002, np.zeros(2), yaw_sigma=0.01)
+    np.testing.assert_allclose(at_rest, [0.002, 0.002, 0.01], rtol=1e-5)
+
+
 def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
     """`tip_stop` 1.5 cm: an action whose margin (less the estimate's std) falls under it is stopped
     (reason "tip", counted toward max_stops); at rest it neither resumes nor recovers while the planner's
@@ -619,36 +692,44 @@ def test_the_drag_bound_checks_the_worse_of_the_dragged_and_the_held_present():
 def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monkeypatch):
     """With `drag_bound` and a late loop, `run_episode` and the batched `run_episodes` both check from the
     held present as well (the carriages where the model's present has them); with no delay, from the
-    model's alone."""
+    model's alone. With tip_uncertainty "sigma" both give the check the pose's spread (`tip_spread`):
+    nothing off with a perfect sensor and no delay, and over a delay in x, y and yaw."""
     from boxjax.control import batch, episode
     from boxjax.control.config import ControllerConfig
     from boxjax.planners.sampling import SamplingOptions
     from boxjax.sim.faults import Faults
 
-    seen = []
+    seen, spreads = [], []
 
     def spy(real):
-        def check(cfg, model, window, belt, action, horizon, backup="best", held=None, tip=False):
+        def check(
+            cfg, model, window, belt, action, horizon, backup="best", held=None, tip=False, tip_spread=None
+        ):
             seen.append(None if held is None else (np.asarray(window), np.asarray(held)))
-            return real(cfg, model, window, belt, action, horizon, backup, held, tip)
+            spreads.append(np.asarray(tip_spread).reshape(-1, 3))
+            return real(cfg, model, window, belt, action, horizon, backup, held, tip, tip_spread)
 
         return check
 
     monkeypatch.setattr(monitor, "check", spy(monitor.check))
     monkeypatch.setattr(monitor, "check_batch", spy(monitor.check_batch))
-    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0), monitor=MonitorConfig(drag_bound=1.0))
+    settings = MonitorConfig(drag_bound=1.0, tip_uncertainty="sigma")
+    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0), monitor=settings)
     box, key = massdist.named("A", CFG.box), jax.random.PRNGKey(3)
     for late in (Faults(obs_latency=2), Faults()):
         for run in (
-            lambda f: episode.run_episode(CFG, box, key, ctrl=ctrl, max_steps=55, faults=f),
-            lambda f: batch.run_episodes(CFG, [box], [key], ctrl=ctrl, max_steps=55, faults=f),
+            lambda f: episode.run_episode(CFG, box, key, ctrl=ctrl, max_steps=52, faults=f),
+            lambda f: batch.run_episodes(CFG, [box], [key], ctrl=ctrl, max_steps=52, faults=f),
         ):
             seen.clear()
+            spreads.clear()
             run(late)
             assert seen, "the monitor checked nothing"
             if not late.obs_latency:
                 assert all(s is None for s in seen)
+                np.testing.assert_array_equal(np.concatenate(spreads), 0.0)
                 continue
+            assert all(np.all(s[:, :2] > 0) and np.all(s[:, 2] > 0) for s in spreads)  # moving, late
             for window, held in seen:
                 w, h = window.reshape(-1, *window.shape[-2:]), held.reshape(-1, *held.shape[-2:])
                 np.testing.assert_array_equal(h[:, :, :2], w[:, :, :2])  # the same carriages

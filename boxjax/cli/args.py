@@ -374,11 +374,12 @@ def fault_options(p: argparse.ArgumentParser, *used_by: Condition) -> None:
         p,
         "--tip-uncertainty",
         default="y",
-        choices=("y", "pose"),
+        choices=("y", "pose", "sigma"),
         used_by=(*used_by, when("monitor", "on", owner="the runtime safety monitor")),
-        help="what the tipping watch subtracts for the pose it cannot see: y: the balance check's margin, "
-        "1:1; pose: that margin and the yaw's over the delay, each times how fast the stability margin falls "
-        "with the pose there",
+        help="what the tipping watch counts for the pose it cannot see: y: the balance check's margin "
+        "subtracted, 1:1; pose: that margin and the yaw's over the delay, each times how fast the stability "
+        "margin falls with the pose there; sigma: the margin itself at poses that far off (axes and "
+        "diagonals)",
     )
     option(
         p,

@@ -434,12 +434,23 @@ def run_episodes(
                     flying = put(np.stack([controller.in_flight(rec[b].sent, delay) for b in use]))
                     present_b = monitor.present_batch(own_monitor, ctrl.monitor.drag_bound)
                     seen_b, held = present_b(m_b, put(w), put(belt), flying, obs_b.window)
+                tip, spread = monitor.tip_watch(ctrl.monitor), None
+                belts = np.asarray(obs_b.belt_speed)
+                newest = np.asarray(seen_b[:, -1])  # predicted for when the actions apply
+                if tip == "sigma":  # how far off each checked pose may be, as decide will count it
+                    spread = np.zeros((len(slot_box), 3), np.float32)
+                    for k, b in enumerate(slot_box):
+                        if b is not None and rec[b].monitor is not None:
+                            w = rec[b].world
+                            spread[k] = rec[b].monitor.tip_spread(
+                                w.y_std(), belts[k], windows[b][-1], newest[k], w.yaw_std()
+                            )
+                    spread = put(spread)
                 checks = monitor.check_batch(
                     cfg, m_b, seen_b, obs_b.belt_speed, put(jnp.asarray(actions, jnp.float32)),
-                    ctrl.monitor.horizon, ctrl.monitor.backup, held, tip=monitor.tip_watch(ctrl.monitor),
+                    ctrl.monitor.horizon, ctrl.monitor.backup, held, tip=tip, tip_spread=spread,
                 )  # fmt: skip
-                checks, belts = monitor.to_host(checks), np.asarray(obs_b.belt_speed)
-                newest = np.asarray(seen_b[:, -1])  # predicted for when the actions apply
+                checks = monitor.to_host(checks)
             full = np.zeros((B, 4))
             active = np.zeros(B, bool)
             for k, b in enumerate(slot_box):

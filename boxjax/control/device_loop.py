@@ -147,9 +147,16 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
             if settings.enabled:
                 m_model = slot.model if slot.mon_model is None else slot.mon_model
                 check = monitor.predicted_errors(
-                    cfg, m_model, obs.window, obs.belt_speed, a, settings.horizon, settings.backup,
+                    cfg,
+                    m_model,
+                    obs.window,
+                    obs.belt_speed,
+                    a,
+                    settings.horizon,
+                    settings.backup,
                     tip=monitor.tip_watch(settings),
-                )  # fmt: skip
+                    tip_spread=jnp.zeros(3, jnp.float32),
+                )  # fmt: skip (a perfect sensor and no delay on the device: nothing off)
                 mon, sent, ev = monitor_pure.decide(cfg, settings, slot.mon, a, check, 0.0, obs.belt_speed)
             state = env.pure_step(slot.state, sent)
             window = jnp.concatenate([slot.window[1:], state.s[None]])

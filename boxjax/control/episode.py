@@ -368,6 +368,16 @@ def run_episode(
                     seen_w, held = monitor.present_one(
                         m_model, w, b, flying, obs.window, own, ctrl.monitor.drag_bound
                     )
+                tip = monitor.tip_watch(ctrl.monitor)
+                spread = None
+                if tip == "sigma":  # how far off the checked pose may be, as decide will count it
+                    spread = mon.tip_spread(
+                        world.y_std(),
+                        np.asarray(obs.belt_speed),
+                        measured=window[-1],
+                        predicted=np.asarray(seen_w[-1]),
+                        yaw_sigma=world.yaw_std(),
+                    )
                 check = monitor.check(
                     cfg,
                     m_model,
@@ -377,7 +387,8 @@ def run_episode(
                     ctrl.monitor.horizon,
                     ctrl.monitor.backup,
                     held,
-                    tip=monitor.tip_watch(ctrl.monitor),
+                    tip=tip,
+                    tip_spread=spread,
                 )
                 a = mon.decide(
                     len(actions),

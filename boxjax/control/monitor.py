@@ -68,7 +68,7 @@ from boxjax.prior.predictor import PriorParams
 
 # Why a stop was issued; an episode that ends stopped is `safe_stop` with one of these.
 BALANCE, STALE, TIP = "balance", "stale_observation", "tip"
-TIP_UNCERTAINTY = ("y", "pose")  # `MonitorConfig.tip_uncertainty`
+TIP_UNCERTAINTY = ("y", "pose", "sigma")  # `MonitorConfig.tip_uncertainty`
 REASONS = (BALANCE, STALE, TIP)
 RUN, STOP = "run", "stop"
 # The controlled stops the monitor can issue (`backup_actions`): belts to rest, carriages held where they
@@ -172,6 +172,10 @@ class MonitorConfig:
     # slope in yaw, added in quadrature. Near a corner patch of the support the margin moves several times
     # faster than the pose: a box 4 steps late (seed 0, box 28) was predicted 30 mm inside as its true
     # margin fell 21 -> 9 -> -2 mm; 5 mm of xy error moved it 12 mm, 1 degree 7 mm (docs/results/faults.md).
+    # "sigma": the margin itself at poses that far off (`Check.go_tip` the smallest over `SIGMA_POINTS`
+    # scaled by `Monitor.tip_spread`: the balance check's margin in x and y, k_sigma of the estimate's yaw
+    # std and k_delay of `tip_yaw_std`'s over the delay in yaw), nothing subtracted: a slope is zero on
+    # the margin's plateau next to a cliff, a point on the far side of it is not.
     tip_uncertainty: str = "y"
     # rad per square-root control step: the std of the latency compensation's yaw error over the delay
     # ("pose" only), 0.31-0.36 degrees per square-root step over 1, 2 and 4 steps of delay along 40 turns
@@ -228,7 +232,7 @@ class MonitorConfig:
             bad("backup", f"must be one of {BACKUP_CHOICES}")
         if self.tip_uncertainty not in TIP_UNCERTAINTY:
             bad("tip_uncertainty", f"must be one of {TIP_UNCERTAINTY}")
-        if self.tip_uncertainty == "pose" and not self.tip_stop:
+        if self.tip_uncertainty != "y" and not self.tip_stop:
             bad("tip_uncertainty", "needs the tipping watch (tip_stop > 0)")
 
 
@@ -288,8 +292,30 @@ class Check(NamedTuple):
     go_tip_slope: jax.Array = np.zeros(3, np.float32)
 
 
+def _sigma_points() -> np.ndarray:
+    """(27, 3) the centre and its 26 neighbours on a 3 x 3 x 3 grid, each scaled onto the unit sphere: the
+    pose offsets (in units of the spread per axis, x, y, yaw) at which the "sigma" tipping watch evaluates
+    the margin. The faces, the edges' and the corners' directions: near a corner patch of the support the
+    margin's cliff lies along x and y together."""
+    g = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
+    n = np.linalg.norm(g, axis=1, keepdims=True)
+    return (g / np.maximum(n, 1.0)).astype(np.float32)
+
+
+SIGMA_POINTS = _sigma_points()
+
+
 def predicted_errors(
-    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None, tip=False
+    cfg: Config,
+    model,
+    window,
+    belt_speed,
+    action,
+    horizon: int,
+    backup: str = "best",
+    held=None,
+    tip=False,
+    tip_spread=None,
 ) -> Check:
     """The largest balance error, now (the window's newest state) and over `horizon` predicted steps, of
     (a) `action` followed by a stop and (b) a stop at once, each with the stop of `backup_set` predicted
@@ -297,8 +323,10 @@ def predicted_errors(
     present (`planning.compensate_held`: the carriage moves over the delay not dragging the box); every
     error is then the worse of the two windows' (`MonitorConfig.drag_bound`). `tip`: also the smallest
     stability margin of the action's rollout (`Check.go_tip`, the worse window's; the model's
-    `stability_margin`); "slope": and how fast it falls with the pose there (`Check.go_tip_slope`;
-    `tip_watch` says which the settings need)."""
+    `stability_margin`); "slope": and how fast it falls with the pose there (`Check.go_tip_slope`);
+    "sigma": the smallest at the poses `SIGMA_POINTS` x `tip_spread` ((3,) m, m, rad: how far off in x, y
+    and yaw the box may be, `Monitor.tip_spread`) off every state's (`tip_watch` says which the settings
+    need)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
@@ -315,6 +343,14 @@ def predicted_errors(
     if tip:
         go_states = states[:, go_b]  # (windows, horizon, 5): the action, then its stop
         watched = jnp.concatenate([starts[:, -1:], go_states.astype(starts.dtype)], 1).reshape(-1, 5)
+        if tip == "sigma":  # the margin at poses off by the spread, along each axis and diagonal
+            if tip_spread is None:
+                raise ValueError('the tipping watch "sigma" needs the pose\'s spread (tip_spread)')
+            off = jnp.zeros((len(SIGMA_POINTS), 5), watched.dtype)
+            off = off.at[:, jnp.array([geometry.X, geometry.Y, geometry.YAW])].set(
+                jnp.asarray(SIGMA_POINTS) * jnp.asarray(tip_spread, watched.dtype)
+            )
+            watched = (watched[:, None] + off[None]).reshape(-1, 5)
         margins = jax.vmap(model.stability_margin)(watched)  # now and along the rollouts
         at = jnp.argmin(jnp.where(jnp.isnan(margins), -jnp.inf, margins))
         go_tip = margins[at]
@@ -361,10 +397,19 @@ def present_batch(own: bool, drag_bound: float):
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup", "tip"))
 def check(
-    cfg: Config, model, window, belt_speed, action, horizon: int, backup: str = "best", held=None, tip=False
+    cfg: Config,
+    model,
+    window,
+    belt_speed,
+    action,
+    horizon: int,
+    backup: str = "best",
+    held=None,
+    tip=False,
+    tip_spread=None,
 ) -> Check:
     """Jitted `predicted_errors`."""
-    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup, held, tip)
+    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup, held, tip, tip_spread)
 
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup", "tip"))
@@ -378,13 +423,19 @@ def check_batch(
     backup: str = "best",
     held=None,
     tip=False,
+    tip_spread=None,
 ):
-    """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's)."""
+    """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's;
+    `tip_spread` (B, 3) one per box)."""
     one = partial(predicted_errors, cfg, horizon=horizon, backup=backup, tip=tip)
+    if tip_spread is None:
+        tip_spread = jnp.zeros((actions.shape[0], 3), jnp.float32)
     if held is None:
-        return jax.vmap(one)(models, windows, belt_speeds, actions)
-    both = jax.vmap(lambda m, w, b, a, h: one(m, w, b, a, held=h))
-    return both(models, windows, belt_speeds, actions, held)
+        return jax.vmap(lambda m, w, b, a, s: one(m, w, b, a, tip_spread=s))(
+            models, windows, belt_speeds, actions, tip_spread
+        )
+    both = jax.vmap(lambda m, w, b, a, h, s: one(m, w, b, a, held=h, tip_spread=s))
+    return both(models, windows, belt_speeds, actions, held, tip_spread)
 
 
 def to_host(c: Check, k: int | None = None) -> Check:
@@ -459,26 +510,15 @@ class Monitor:
         """
         m, limit = self.m, self.limit
         miss = self._track(measured, predicted)
-        travel = float(np.sum(np.square(np.sum(self._in_flight, axis=0)))) if self._in_flight else 0.0
+        travel = self._travel()
         self.log.append((t, float(check.go), float(check.stop), float(sigma), miss, travel))
         still = self.rest.still(belt_speed)
         self._recovering = self._recovering and not still
         if still and self._recovered_from is not None:  # the last recovery played out: judged
             self.recovery_failed |= recovery_worse(self._recovered_from, check.now, m.k_sigma * sigma)
             self._recovered_from = None
-        # the prediction's over the delay (exact at rest), with the drag of the carriage moves in flight
-        delay_var = 0.0 if still else self.delay_var + m.drag_std**2 * travel
-        if (
-            not still
-            and m.miss_sigmas > 0
-            and miss > m.miss_sigmas * math.sqrt(self.delay_var + 2 * sigma**2)
-        ):
-            delay_var = max(delay_var, miss**2)  # the model is failing here: its miss is its error
-        k_delay = m.k_sigma if m.k_delay is None else m.k_delay
-        margin = math.sqrt((m.k_sigma * sigma) ** 2 + k_delay**2 * delay_var)
+        margin, resume_margin = self._margins(sigma, still, miss, travel)
         go_error = float(check.go) + margin
-        k_resume = m.k_sigma if m.resume_k_sigma is None else m.resume_k_sigma
-        resume_margin = math.sqrt((k_resume * sigma) ** 2 + k_delay**2 * delay_var)
         tipping = (
             m.tip_stop > 0
             and float(check.go_tip) - tip_margin(m, check, margin, self.delay, still) < m.tip_stop
@@ -524,6 +564,53 @@ class Monitor:
         if not self._recovering:  # a crossing that a recovery led to was not foreseen by a stop
             self.stopping_steps.add(t)
         return self._send(self._plan.popleft() if self._plan else np.zeros(4))
+
+    def _travel(self) -> float:
+        """The carriage travel in flight: the squared per-carriage sums of the actions in flight (m^2)."""
+        return float(np.sum(np.square(np.sum(self._in_flight, axis=0)))) if self._in_flight else 0.0
+
+    def _margins(self, sigma: float, still: bool, miss: float, travel: float) -> tuple[float, float]:
+        """(the balance check's margin, a resume's and a recovery's): k_sigma (resume_k_sigma) of the
+        estimate's y std `sigma` and k_delay of the prediction's error over the delay (none when the
+        gripper is known at rest: `still`; with the drag of the carriage `travel` in flight; the
+        prediction's recent `miss` where the model is failing), in quadrature."""
+        m = self.m
+        delay_var = 0.0 if still else self.delay_var + m.drag_std**2 * travel
+        if (
+            not still
+            and m.miss_sigmas > 0
+            and miss > m.miss_sigmas * math.sqrt(self.delay_var + 2 * sigma**2)
+        ):
+            delay_var = max(delay_var, miss**2)  # the model is failing here: its miss is its error
+        k_delay = m.k_sigma if m.k_delay is None else m.k_delay
+        k_resume = m.k_sigma if m.resume_k_sigma is None else m.resume_k_sigma
+        margin = math.sqrt((m.k_sigma * sigma) ** 2 + k_delay**2 * delay_var)
+        return margin, math.sqrt((k_resume * sigma) ** 2 + k_delay**2 * delay_var)
+
+    def tip_spread(
+        self, sigma: float, belt_speed, measured=None, predicted=None, yaw_sigma: float = 0.0
+    ) -> np.ndarray:
+        """(3,) how far off (x m, y m, yaw rad) the checked pose may be, for the "sigma" tipping watch
+        (`MonitorConfig.tip_uncertainty`), from what the step's `decide` will be given (the same
+        arguments; `yaw_sigma`: the estimate's yaw std, rad) before it is called: in x and y the balance
+        check's margin, in yaw k_sigma of `yaw_sigma` and k_delay of `tip_yaw_std` per square-root step of
+        delay (none when the gripper is known at rest), in quadrature. Changes nothing."""
+        m = self.m
+        misses = list(self._misses)
+        if (
+            self.delay
+            and measured is not None
+            and predicted is not None
+            and len(self._predicted) == self.delay
+        ):
+            misses = [*misses, abs(_offset(measured) - self._predicted[0])][-m.miss_window :]
+        still = self.rest.still(belt_speed)
+        margin = self._margins(sigma, still, max(misses, default=0.0), self._travel())[0]
+        k_delay = m.k_sigma if m.k_delay is None else m.k_delay
+        yaw = math.hypot(
+            m.k_sigma * yaw_sigma, k_delay * m.tip_yaw_std * math.sqrt(self.delay) * (1.0 - still)
+        )
+        return np.array([margin, margin, yaw], np.float32)
 
     def _recovers(self, check: Check, margin: float) -> bool:
         """At rest between the thresholds: does the action bring the box `recover_gain` closer to the
@@ -583,11 +670,11 @@ def record(stops, resumes: int, recoveries: int, would_stop=None) -> dict:
 
 
 def tip_watch(m: MonitorConfig):
-    """The check's `tip` for these settings: False (no tipping watch), True (the margin) or "slope" (the
-    margin and its slope, for tip_uncertainty "pose")."""
+    """The check's `tip` for these settings: False (no tipping watch), True (the margin), "slope" (the
+    margin and its slope, for tip_uncertainty "pose") or "sigma" (the margin at the spread's poses)."""
     if m.tip_stop <= 0:
         return False
-    return "slope" if m.tip_uncertainty == "pose" else True
+    return {"y": True, "pose": "slope", "sigma": "sigma"}[m.tip_uncertainty]
 
 
 def tip_margin(m: MonitorConfig, check: Check, margin, delay: int, still):
@@ -597,6 +684,8 @@ def tip_margin(m: MonitorConfig, check: Check, margin, delay: int, still):
     each times the margin's slope (`Check.go_tip_slope`), in quadrature. numpy or jnp alike."""
     if m.tip_uncertainty == "y":
         return margin
+    if m.tip_uncertainty == "sigma":  # counted in the check's points (`Monitor.tip_spread`)
+        return 0.0 * margin
     k_delay = m.k_sigma if m.k_delay is None else m.k_delay
     yaw = k_delay * m.tip_yaw_std * math.sqrt(delay) * (1.0 - still)
     sx, sy, syaw = check.go_tip_slope[0], check.go_tip_slope[1], check.go_tip_slope[2]

@@ -194,16 +194,21 @@ class PoseFilter:
             self.P[:, :, 1] = 0.0
         return self.output()
 
-    def y_std(self) -> float:
-        """(m) the standard deviation of the present box y (`output`): the filter's covariance at the
-        measurement time, carried over the latency (constant velocity plus the process noise)."""
+    def std(self, axis: int) -> float:
+        """The standard deviation of the present box coordinate `axis` (0: x m, 1: y m, 2: yaw rad;
+        `output`): the filter's covariance at the measurement time, carried over the latency (constant
+        velocity plus the process noise)."""
         if self.P is None:
-            return float(np.sqrt(self.R[1]))
+            return float(np.sqrt(self.R[axis]))
         tau = self.latency * self.dt
-        p = self.P[1]
-        q = self.Q[1, 1, 1] / self.dt  # white-acceleration intensity (m^2/s^3)
+        p = self.P[axis]
+        q = self.Q[axis, 1, 1] / self.dt  # white-acceleration intensity (per s^3)
         var = p[0, 0] + 2 * tau * p[0, 1] + tau**2 * p[1, 1] + q * tau**3 / 3
         return float(np.sqrt(max(var, 0.0)))
+
+    def y_std(self) -> float:
+        """(m) the standard deviation of the present box y (`std`)."""
+        return self.std(1)
 
     def velocity(self) -> np.ndarray:
         """(3,) the estimated velocity of (x, y, yaw) (m/s, rad/s)."""

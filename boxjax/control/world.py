@@ -17,6 +17,8 @@ With no faults every call is the identity and no random number is drawn: the epi
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from boxjax import massdist
@@ -158,6 +160,14 @@ class World:
             return self.filter.y_std()
         if self.sensor is not None:
             return 1e-3 * self.faults.obs_noise_mm
+        return 0.0
+
+    def yaw_std(self) -> float:
+        """(rad) the standard deviation of the controller's estimate of the box's yaw, as `y_std`."""
+        if self.filter is not None:
+            return self.filter.std(2)
+        if self.sensor is not None:
+            return math.radians(self.faults.obs_noise_deg)
         return 0.0
 
     def send(self, action) -> np.ndarray:

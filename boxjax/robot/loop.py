@@ -128,6 +128,9 @@ class PlannerStep:
             own, bound = self.monitor_model is not None, self.monitor.m.drag_bound
             if late is not None and (own or bound):  # predicted from the newest estimate by the monitor
                 window, held = present_one(model, *late, np.asarray(obs.window, np.float32), own, bound)
+            sigma = self.sigma() if callable(self.sigma) else self.sigma
+            tip = tip_watch(self.monitor.m)
+            spread = self.monitor.tip_spread(sigma, np.asarray(obs.belt_speed)) if tip == "sigma" else None
             check = monitor_check(
                 self.cfg,
                 model,
@@ -137,9 +140,9 @@ class PlannerStep:
                 self.monitor.m.horizon,
                 self.monitor.m.backup,
                 held,
-                tip=tip_watch(self.monitor.m),
+                tip=tip,
+                tip_spread=spread,
             )
-            sigma = self.sigma() if callable(self.sigma) else self.sigma
             a = self.monitor.decide(self.t, a, to_host(check), sigma, 0, np.asarray(obs.belt_speed))
         self.t += 1
         return a
