@@ -30,7 +30,7 @@ def episodes():
     keys = [jax.random.PRNGKey(j) for j in range(len(NAMES))]
     ended = []
     res = device_loop.run_episodes(
-        cfg, dists, keys, ctrl=CTRL, slots=2, block=10, progress=lambda b, r: ended.append(b)
+        cfg, dists, keys, ctrl=CTRL, slots=2, block=10, max_steps=200, progress=lambda b, r: ended.append(b)
     )
     return dists, keys, res, ended
 

@@ -245,13 +245,13 @@ def test_the_sigma_watch_sees_a_cliff_that_the_slope_cannot():
     prior = make_prior(massdist.voxel_masses(massdist.named("C", CFG.box), CFG.box))
     s = _state(p1=-0.1747, p2=0.1685, x=-0.0479, y=-0.0284, yaw=0.0108)
     window, belt, rest = planning.initial_window(s), jnp.zeros(2), jnp.zeros(4, jnp.float32)
-    spread = np.array([0.006, 0.006, math.radians(1.5)], np.float32)
+    spread = np.array([0.006, 0.006, math.radians(1.5), 0.42], np.float32)  # at rest: no carriage travel
     slope = monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="slope")
     sigma = monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="sigma", tip_spread=spread)
-    none = monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="sigma", tip_spread=np.zeros(3))
+    none = monitor.check(CFG, prior, window, belt, rest, 2, "hold", tip="sigma", tip_spread=np.zeros(4))
     assert float(none.go_tip) == pytest.approx(float(slope.go_tip), abs=1e-6) and float(slope.go_tip) > 0.05
     assert float(np.max(slope.go_tip_slope)) < 1e-3  # on the plateau
-    points = [np.asarray(s, np.float64) + np.r_[0.0, 0.0, p * spread] for p in monitor.SIGMA_POINTS]
+    points = [np.asarray(s, np.float64) + np.r_[0.0, 0.0, p * spread[:3]] for p in monitor.SIGMA_POINTS]
     direct = min(float(prior.stability_margin(jnp.asarray(z, jnp.float32))) for z in points)
     assert direct < 0  # a box that far off tips
     assert float(sigma.go_tip) == pytest.approx(direct, abs=1e-4)  # at rest: every state is the present
@@ -269,9 +269,23 @@ def test_the_sigma_watch_sees_a_cliff_that_the_slope_cannot():
     # the batched check gives each box its own spread's
     cb = monitor.check_batch(
         CFG, planning.stack([prior, prior]), jnp.stack([window, window]), jnp.stack([belt, belt]),
-        jnp.stack([rest, rest]), 2, "hold", tip="sigma", tip_spread=np.stack([spread, np.zeros(3)]),
+        jnp.stack([rest, rest]), 2, "hold", tip="sigma", tip_spread=np.stack([spread, np.zeros(4)]),
     )  # fmt: skip
     np.testing.assert_allclose(np.asarray(cb.go_tip), [float(sigma.go_tip), float(none.go_tip)], atol=1e-6)
+    # a carriage move: its drag is uncertain, so y spreads further state by state with the travel (the
+    # squared per-carriage sums of the moves so far), recomputed here along the rollout of the action
+    # and its stop
+    move = jnp.asarray([0.0, 0.0, 0.005, 0.005], jnp.float32)
+    c = monitor.check(CFG, prior, window, belt, move, 2, "hold", tip="sigma", tip_spread=spread)
+    states = np.asarray(prior.rollout_sequence(window, belt, jnp.stack([move, rest])), np.float64)
+    want = []
+    for z, travel in ((np.asarray(s, np.float64), 0.0), (states[0], 5e-5), (states[1], 5e-5)):
+        per = np.array([spread[0], math.sqrt(spread[1] ** 2 + spread[3] ** 2 * travel), spread[2]])
+        want += [
+            float(prior.stability_margin(jnp.asarray(z + np.r_[0, 0, p * per], jnp.float32)))
+            for p in monitor.SIGMA_POINTS
+        ]
+    assert float(c.go_tip) == pytest.approx(min(want), abs=1e-4)
 
 
 def test_the_tip_spread_is_the_margin_decide_counts_and_changes_nothing():
@@ -290,23 +304,30 @@ def test_the_tip_spread_is_the_margin_decide_counts_and_changes_nothing():
         assert spread[2] == pytest.approx(
             math.hypot(m.k_sigma * 0.01, k * m.tip_yaw_std * math.sqrt(2)), rel=1e-5
         )
-        assert spread[0] == spread[1] >= m.k_sigma * 0.002
-        go = m.stop_at * LIMIT - float(spread[1])
+        assert spread[0] == spread[1] >= m.k_sigma * 0.002  # nothing in flight moved a carriage
+        assert spread[3] == pytest.approx(k * m.tip_drag_std)
+        go = m.stop_at * LIMIT - float(spread[0])
         for mon in (a, b):  # just under the threshold: both go, the previewed one and the other
             sent = mon.decide(t, planned, _check(go - 1e-5), 0.002, 0, moving, measured, predicted)
             assert np.array_equal(sent, planned), t
-    assert spread[1] > 0.006  # the misses widened it
+    assert spread[0] > 0.006  # the misses widened it
     c = Monitor(CFG, m, delay=2)
     for t in range(6):  # the same steps, just over the threshold at the last (its misses counted)
         measured, predicted = _state(y=0.001 * t), _state(y=0.002 * t + 0.003)
-        go = m.stop_at * LIMIT - float(c.tip_spread(0.002, moving, measured, predicted)[1])
+        go = m.stop_at * LIMIT - float(c.tip_spread(0.002, moving, measured, predicted)[0])
         c.decide(t, planned, _check(go + (1e-5 if t == 5 else -1e-5)), 0.002, 0, moving, measured, predicted)
     assert c.stops == [(5, BALANCE)]
     rest = Monitor(CFG, m, delay=2)
     for t in range(4):
         rest.decide(t, np.zeros(4), _check(0.0), 0.002, 0, np.zeros(2))
     at_rest = rest.tip_spread(0.002, np.zeros(2), yaw_sigma=0.01)
-    np.testing.assert_allclose(at_rest, [0.002, 0.002, 0.01], rtol=1e-5)
+    np.testing.assert_allclose(at_rest[:3], [0.002, 0.002, 0.01], rtol=1e-5)
+    # carriage travel in flight widens y by k_delay tip_drag_std of it: 6 + 2 mm on carriage 1 -> 8 mm
+    flying = Monitor(CFG, m, delay=2)
+    for t, p1 in enumerate((0.006, 0.002)):
+        flying.decide(t, np.array([0.2, -0.2, p1, 0.0]), _check(0.0), 0.002, 0, moving)
+    wide = flying.tip_spread(0.002, moving)
+    assert wide[1] == pytest.approx(math.hypot(wide[0], wide[3] * 0.008), rel=1e-5) and wide[1] > wide[0]
 
 
 def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
@@ -693,7 +714,8 @@ def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monke
     """With `drag_bound` and a late loop, `run_episode` and the batched `run_episodes` both check from the
     held present as well (the carriages where the model's present has them); with no delay, from the
     model's alone. With tip_uncertainty "sigma" both give the check the pose's spread (`tip_spread`):
-    nothing off with a perfect sensor and no delay, and over a delay in x, y and yaw."""
+    nothing off with a perfect sensor and no delay, and over a delay in x, y and yaw; always the drag's
+    per m of carriage travel."""
     from boxjax.control import batch, episode
     from boxjax.control.config import ControllerConfig
     from boxjax.planners.sampling import SamplingOptions
@@ -706,7 +728,7 @@ def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monke
             cfg, model, window, belt, action, horizon, backup="best", held=None, tip=False, tip_spread=None
         ):
             seen.append(None if held is None else (np.asarray(window), np.asarray(held)))
-            spreads.append(np.asarray(tip_spread).reshape(-1, 3))
+            spreads.append(np.asarray(tip_spread).reshape(-1, 4))
             return real(cfg, model, window, belt, action, horizon, backup, held, tip, tip_spread)
 
         return check
@@ -725,11 +747,12 @@ def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monke
             spreads.clear()
             run(late)
             assert seen, "the monitor checked nothing"
+            assert all(np.all(s[:, 3] == np.float32(monitor.tip_drag(settings))) for s in spreads)
             if not late.obs_latency:
                 assert all(s is None for s in seen)
-                np.testing.assert_array_equal(np.concatenate(spreads), 0.0)
+                np.testing.assert_array_equal(np.concatenate(spreads)[:, :3], 0.0)
                 continue
-            assert all(np.all(s[:, :2] > 0) and np.all(s[:, 2] > 0) for s in spreads)  # moving, late
+            assert all(np.all(s[:, :3] > 0) for s in spreads)  # moving, late
             for window, held in seen:
                 w, h = window.reshape(-1, *window.shape[-2:]), held.reshape(-1, *held.shape[-2:])
                 np.testing.assert_array_equal(h[:, :, :2], w[:, :, :2])  # the same carriages

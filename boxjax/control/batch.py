@@ -438,7 +438,7 @@ def run_episodes(
                 belts = np.asarray(obs_b.belt_speed)
                 newest = np.asarray(seen_b[:, -1])  # predicted for when the actions apply
                 if tip == "sigma":  # how far off each checked pose may be, as decide will count it
-                    spread = np.zeros((len(slot_box), 3), np.float32)
+                    spread = np.zeros((len(slot_box), 4), np.float32)
                     for k, b in enumerate(slot_box):
                         if b is not None and rec[b].monitor is not None:
                             w = rec[b].world

@@ -146,6 +146,8 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
             ev = monitor_pure.Events(*(jnp.zeros((), bool),) * len(monitor_pure.Events._fields))
             if settings.enabled:
                 m_model = slot.model if slot.mon_model is None else slot.mon_model
+                # a perfect sensor and no delay on the device: only the rollout's carriage drag is uncertain
+                spread = jnp.asarray([0.0, 0.0, 0.0, monitor.tip_drag(settings)], jnp.float32)
                 check = monitor.predicted_errors(
                     cfg,
                     m_model,
@@ -155,8 +157,8 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
                     settings.horizon,
                     settings.backup,
                     tip=monitor.tip_watch(settings),
-                    tip_spread=jnp.zeros(3, jnp.float32),
-                )  # fmt: skip (a perfect sensor and no delay on the device: nothing off)
+                    tip_spread=spread,
+                )
                 mon, sent, ev = monitor_pure.decide(cfg, settings, slot.mon, a, check, 0.0, obs.belt_speed)
             state = env.pure_step(slot.state, sent)
             window = jnp.concatenate([slot.window[1:], state.s[None]])

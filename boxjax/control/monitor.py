@@ -181,6 +181,13 @@ class MonitorConfig:
     # ("pose" only), 0.31-0.36 degrees per square-root step over 1, 2 and 4 steps of delay along 40 turns
     # of the 4-step latency row (x 0.6-0.9 mm, y 1.4-1.6 mm, as `delay_std`; docs/results/faults.md)
     tip_yaw_std: float = 0.0061
+    # ("sigma" only) the std of the carriages' drag per m of carriage travel, times k_delay added in
+    # quadrature to the y spread: the travel in flight (as `drag_std`) and, state by state, the checked
+    # rollout's own. A carriage moved under a box near a corner patch drags it less than the prior
+    # predicts (0.21 rms of the move, scripts/carriage_drag.py; the prior's bias, docs/results/faults.md),
+    # and there 1.3 mm less drag took the margin 10 mm lower (seed 0, box 28, 4 steps late: predicted 9 mm,
+    # true -1, tipped). 0: the pose's spread alone.
+    tip_drag_std: float = 0.21
     # The stop's carriages (`BACKUPS`): "best" (default) the model's choice, made when the stop is issued,
     # between holding them and moving them toward the box's centre; "hold" or "recentre" always. Moving a
     # carriage drags the box on its belt with it: with one carriage at its stop, re-centring moved a
@@ -211,6 +218,7 @@ class MonitorConfig:
             "drag_std",
             "tip_stop",
             "tip_yaw_std",
+            "tip_drag_std",
         ):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 bad(name, "must be a number >= 0")
@@ -324,9 +332,10 @@ def predicted_errors(
     error is then the worse of the two windows' (`MonitorConfig.drag_bound`). `tip`: also the smallest
     stability margin of the action's rollout (`Check.go_tip`, the worse window's; the model's
     `stability_margin`); "slope": and how fast it falls with the pose there (`Check.go_tip_slope`);
-    "sigma": the smallest at the poses `SIGMA_POINTS` x `tip_spread` ((3,) m, m, rad: how far off in x, y
-    and yaw the box may be, `Monitor.tip_spread`) off every state's (`tip_watch` says which the settings
-    need)."""
+    "sigma": the smallest at the poses `SIGMA_POINTS` x the spread off every state's (`tip_spread`, (4,):
+    how far off in x (m), y (m) and yaw (rad) the box may be, and per m of carriage travel along the rollout
+    how much further in y, its drag being uncertain; `Monitor.tip_spread`; `tip_watch` says which the
+    settings need)."""
     backups = backup_set(cfg, window[-1], horizon, backup)  # (V, horizon, 4)
     first = jnp.broadcast_to(action.astype(jnp.float32), backups[:, :1].shape)
     go = jnp.concatenate([first, backups[:, :-1]], 1)
@@ -346,11 +355,24 @@ def predicted_errors(
         if tip == "sigma":  # the margin at poses off by the spread, along each axis and diagonal
             if tip_spread is None:
                 raise ValueError('the tipping watch "sigma" needs the pose\'s spread (tip_spread)')
-            off = jnp.zeros((len(SIGMA_POINTS), 5), watched.dtype)
-            off = off.at[:, jnp.array([geometry.X, geometry.Y, geometry.YAW])].set(
-                jnp.asarray(SIGMA_POINTS) * jnp.asarray(tip_spread, watched.dtype)
+            spread = jnp.asarray(tip_spread, watched.dtype)
+            # the drag of the carriage moves along the rollout (the action, then its stop) widens y:
+            # travel per state, the squared per-carriage sums of the moves up to it (0 at the present)
+            travel = jnp.sum(jnp.square(jnp.cumsum(go[go_b, :, 2:], axis=0)), axis=-1)
+            travel = jnp.tile(jnp.concatenate([jnp.zeros(1), travel]), starts.shape[0]).astype(watched.dtype)
+            per_state = jnp.stack(
+                [
+                    jnp.broadcast_to(spread[0], travel.shape),
+                    jnp.sqrt(spread[1] ** 2 + spread[3] ** 2 * travel),
+                    jnp.broadcast_to(spread[2], travel.shape),
+                ],
+                -1,
+            )  # (watched, 3)
+            off = jnp.zeros((*per_state.shape[:1], len(SIGMA_POINTS), 5), watched.dtype)
+            off = off.at[..., jnp.array([geometry.X, geometry.Y, geometry.YAW])].set(
+                jnp.asarray(SIGMA_POINTS)[None] * per_state[:, None]
             )
-            watched = (watched[:, None] + off[None]).reshape(-1, 5)
+            watched = (watched[:, None] + off).reshape(-1, 5)
         margins = jax.vmap(model.stability_margin)(watched)  # now and along the rollouts
         at = jnp.argmin(jnp.where(jnp.isnan(margins), -jnp.inf, margins))
         go_tip = margins[at]
@@ -426,10 +448,10 @@ def check_batch(
     tip_spread=None,
 ):
     """`check` vmapped over boxes (their models stacked on a leading axis, as the batched planner's;
-    `tip_spread` (B, 3) one per box)."""
+    `tip_spread` (B, 4) one per box)."""
     one = partial(predicted_errors, cfg, horizon=horizon, backup=backup, tip=tip)
     if tip_spread is None:
-        tip_spread = jnp.zeros((actions.shape[0], 3), jnp.float32)
+        tip_spread = jnp.zeros((actions.shape[0], 4), jnp.float32)
     if held is None:
         return jax.vmap(lambda m, w, b, a, s: one(m, w, b, a, tip_spread=s))(
             models, windows, belt_speeds, actions, tip_spread
@@ -590,11 +612,13 @@ class Monitor:
     def tip_spread(
         self, sigma: float, belt_speed, measured=None, predicted=None, yaw_sigma: float = 0.0
     ) -> np.ndarray:
-        """(3,) how far off (x m, y m, yaw rad) the checked pose may be, for the "sigma" tipping watch
-        (`MonitorConfig.tip_uncertainty`), from what the step's `decide` will be given (the same
-        arguments; `yaw_sigma`: the estimate's yaw std, rad) before it is called: in x and y the balance
-        check's margin, in yaw k_sigma of `yaw_sigma` and k_delay of `tip_yaw_std` per square-root step of
-        delay (none when the gripper is known at rest), in quadrature. Changes nothing."""
+        """(4,) how far off (x m, y m, yaw rad) the checked pose may be, and how much further in y per m of
+        carriage travel along the checked rollout, for the "sigma" tipping watch
+        (`MonitorConfig.tip_uncertainty`; `check`'s `tip_spread`), from what the step's `decide` will be
+        given (the same arguments; `yaw_sigma`: the estimate's yaw std, rad) before it is called: in x the
+        balance check's margin, in y that and k_delay `tip_drag_std` of the carriage travel in flight, in
+        yaw k_sigma of `yaw_sigma` and k_delay of `tip_yaw_std` per square-root step of delay (none when
+        the gripper is known at rest), each in quadrature; then k_delay `tip_drag_std`. Changes nothing."""
         m = self.m
         misses = list(self._misses)
         if (
@@ -605,12 +629,15 @@ class Monitor:
         ):
             misses = [*misses, abs(_offset(measured) - self._predicted[0])][-m.miss_window :]
         still = self.rest.still(belt_speed)
-        margin = self._margins(sigma, still, max(misses, default=0.0), self._travel())[0]
+        travel = self._travel()
+        margin = self._margins(sigma, still, max(misses, default=0.0), travel)[0]
         k_delay = m.k_sigma if m.k_delay is None else m.k_delay
+        drag = tip_drag(m)
+        y = math.sqrt(margin**2 + drag**2 * travel)
         yaw = math.hypot(
             m.k_sigma * yaw_sigma, k_delay * m.tip_yaw_std * math.sqrt(self.delay) * (1.0 - still)
         )
-        return np.array([margin, margin, yaw], np.float32)
+        return np.array([margin, y, yaw, drag], np.float32)
 
     def _recovers(self, check: Check, margin: float) -> bool:
         """At rest between the thresholds: does the action bring the box `recover_gain` closer to the
@@ -675,6 +702,11 @@ def tip_watch(m: MonitorConfig):
     if m.tip_stop <= 0:
         return False
     return {"y": True, "pose": "slope", "sigma": "sigma"}[m.tip_uncertainty]
+
+
+def tip_drag(m: MonitorConfig) -> float:
+    """The "sigma" watch's y spread per m of carriage travel: k_delay `tip_drag_std`."""
+    return (m.k_sigma if m.k_delay is None else m.k_delay) * m.tip_drag_std
 
 
 def tip_margin(m: MonitorConfig, check: Check, margin, delay: int, still):
