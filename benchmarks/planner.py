@@ -200,11 +200,14 @@ def _monitor(cfg, model, window, speed, target, keys, calls: int) -> dict:
     compensate = jax.jit(planning.compensate)
     res = {"horizon": horizon}
     checked = lambda i: (cfg, model, window, speed, action, horizon)  # noqa: E731
+    sigma_spread = np.array([0.004, 0.004, 0.01, monitor.tip_drag(monitor.MonitorConfig())], np.float32)
     for name, fn, args_for in (
         ("planner_default", splan, lambda i: (keys[i], model, window, speed, target, nominal)),
         ("check", monitor.check, checked),
         # with the tipping watch (`MonitorConfig.tip_stop`): the stability margin along the action's rollout
         ("check_tip", partial(monitor.check, tip=True), checked),
+        # the "sigma" watch (`MonitorConfig.tip_uncertainty`): the margin at 27 poses around every state
+        ("check_tip_sigma", partial(monitor.check, tip="sigma", tip_spread=sigma_spread), checked),
         ("compensate_2_steps", compensate, lambda i: (model, window, speed, in_flight)),
     ):
         t0 = time.perf_counter()

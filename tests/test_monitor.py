@@ -183,7 +183,8 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
     np.testing.assert_array_equal(np.asarray(c.go_tip_slope), 0)  # the margin alone: no slope computed
     assert float(at_rest.go_tip) == pytest.approx(float(prior.stability_margin(spread[-1])), abs=1e-4)
     assert (
-        monitor.tip_watch(MonitorConfig()) is True and monitor.tip_watch(MonitorConfig(tip_stop=0.0)) is False
+        monitor.tip_watch(MonitorConfig(tip_uncertainty="y")) is True
+        and monitor.tip_watch(MonitorConfig(tip_stop=0.0)) is False
     )
     assert monitor.tip_watch(MonitorConfig(tip_uncertainty="pose")) == "slope"
     s0, h = np.asarray(spread[-1], np.float64), 1e-4
@@ -202,7 +203,7 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
 
 def test_the_tipping_watch_can_count_how_fast_the_margin_falls_with_the_pose():
     """tip_uncertainty="pose": the estimate's margin times the margin's slopes in x and y, and k_delay
-    `tip_yaw_std` per square-root step of delay times its slope in yaw, in quadrature; "y" (default): the
+    `tip_yaw_std` per square-root step of delay times its slope in yaw, in quadrature; "y": the
     margin alone, 1:1. Known at rest, the yaw's delay term is dropped."""
     planned, belts = np.array([0.2, -0.2, 0.0, 0.0]), np.array([0.2, -0.2])
 
@@ -211,7 +212,8 @@ def test_the_tipping_watch_can_count_how_fast_the_margin_falls_with_the_pose():
 
     steep = (0.0, 3.0, 0.0)  # the margin falls 3 mm per mm of y: 0.03 - 3 x 0.008 under 0.008
     assert np.array_equal(
-        Monitor(CFG, MonitorConfig()).decide(0, planned, tip(steep), 0.008, 0, belts), planned
+        Monitor(CFG, MonitorConfig(tip_uncertainty="y")).decide(0, planned, tip(steep), 0.008, 0, belts),
+        planned,
     )
     pose = Monitor(CFG, MonitorConfig(tip_uncertainty="pose"))
     assert not np.array_equal(pose.decide(0, planned, tip(steep), 0.008, 0, belts), planned)
@@ -226,10 +228,9 @@ def test_the_tipping_watch_can_count_how_fast_the_margin_falls_with_the_pose():
     want = math.sqrt(0.005**2 + (2 * 0.005) ** 2 + (0.6 * 2 * 0.01 * 2) ** 2)
     assert monitor.tip_margin(m, c, 0.005, 4, False) == pytest.approx(want)
     assert monitor.tip_margin(m, c, 0.005, 4, True) == pytest.approx(math.sqrt(5) * 0.005)  # at rest
-    assert monitor.tip_margin(MonitorConfig(), c, 0.005, 4, False) == 0.005
+    assert monitor.tip_margin(MonitorConfig(tip_uncertainty="y"), c, 0.005, 4, False) == 0.005
     for bad, match in (
         ({"tip_uncertainty": "xy"}, "tip_uncertainty"),
-        ({"tip_uncertainty": "pose", "tip_stop": 0.0}, "tipping watch"),
         ({"tip_uncertainty": "pose", "tip_yaw_std": -1.0}, "tip_yaw_std"),
     ):
         with pytest.raises(ConfigError, match=match):
@@ -331,13 +332,13 @@ def test_the_tip_spread_is_the_margin_decide_counts_and_changes_nothing():
 
 
 def test_a_predicted_tip_stops_and_the_stop_holds_until_the_margin_is_back():
-    """`tip_stop` 1.5 cm: an action whose margin (less the estimate's std) falls under it is stopped
-    (reason "tip", counted toward max_stops); at rest it neither resumes nor recovers while the planner's
-    action still would; once an action keeps the margin it resumes. Off (`tip_stop` 0): the same action
-    goes."""
+    """`tip_stop` 1.5 cm, watch "y": an action whose margin (less the estimate's std) falls under it is
+    stopped (reason "tip", counted toward max_stops); at rest it neither resumes nor recovers while the
+    planner's action still would; once an action keeps the margin it resumes. Off (`tip_stop` 0): the
+    same action goes."""
     planned = np.array([0.2, -0.2, 0.0, 0.0])
     tip = lambda go_tip: monitor.Check(*_check(0.01)[:7], np.asarray(go_tip))  # noqa: E731
-    m = Monitor(CFG, MonitorConfig(tip_stop=0.015))
+    m = Monitor(CFG, MonitorConfig(tip_stop=0.015, tip_uncertainty="y"))
     assert np.array_equal(m.decide(0, planned, tip(0.03), 0.002, 0, np.array([0.2, -0.2])), planned)
     assert not np.array_equal(m.decide(1, planned, tip(0.016), 0.002, 0, np.array([0.2, -0.2])), planned)
     assert m.stops == [(1, TIP)] and m.balance_stops == 1

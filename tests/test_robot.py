@@ -416,7 +416,8 @@ def test_given_a_model_the_loop_predicts_over_the_pipelines_latency(episode):
 
 def test_the_monitor_of_a_loop_with_pose_noise_assumes_its_filters_uncertainty():
     """A PlannerStep given no sigma, in a loop told the tracking's noise: its monitor's sigma is the
-    filter's y std each step (the stated 3 mm before the first frame, less once frames are averaged)."""
+    filter's y std each step (the stated 3 mm before the first frame, less once frames are averaged), and
+    its yaw sigma (the "sigma" tipping watch's) the filter's yaw std."""
     from boxjax import planning
     from boxjax.control.monitor import MonitorConfig
     from boxjax.robot import PlannerStep
@@ -428,6 +429,7 @@ def test_the_monitor_of_a_loop_with_pose_noise_assumes_its_filters_uncertainty()
     for k in range(20):
         loop.observe(tracking(stamp=10 + 0.05 * k), joints(stamp=10 + 0.05 * k))
     assert 0 < step.sigma() < 0.003 and step.sigma() == loop.y_std()
+    assert 0 < step.yaw_sigma() < math.radians(1.5) and step.yaw_sigma() == loop.yaw_std()  # and its yaw
     fixed = PlannerStep(planner, None, jax.random.PRNGKey(0), sigma=0.002)
     RobotLoop(fixed, pose_noise=(3.0, 1.5))
     assert fixed.sigma == 0.002  # a sigma given is kept

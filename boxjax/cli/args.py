@@ -68,6 +68,11 @@ def needs(dest: str, what: str = "") -> Condition:
     return cond
 
 
+def _tip_watch_on(args) -> str | None:
+    """--tip-uncertainty is the tipping watch's: refused with --tip-stop-cm 0 (no watch)."""
+    return "does nothing with --tip-stop-cm 0 (no tipping watch)" if args.tip_stop_cm == 0 else None
+
+
 def at_least(n) -> tuple[Callable[[Any], bool], str]:
     return (lambda v: v >= n), f">= {n}"
 
@@ -373,9 +378,9 @@ def fault_options(p: argparse.ArgumentParser, *used_by: Condition) -> None:
     option(
         p,
         "--tip-uncertainty",
-        default="y",
+        default="sigma",
         choices=("y", "pose", "sigma"),
-        used_by=(*used_by, when("monitor", "on", owner="the runtime safety monitor")),
+        used_by=(*used_by, when("monitor", "on", owner="the runtime safety monitor"), _tip_watch_on),
         help="what the tipping watch counts for the pose it cannot see: y: the balance check's margin "
         "subtracted, 1:1; pose: that margin and the yaw's over the delay, each times how fast the stability "
         "margin falls with the pose there; sigma: the margin itself at poses that far off (axes and "

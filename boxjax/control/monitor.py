@@ -176,7 +176,7 @@ class MonitorConfig:
     # scaled by `Monitor.tip_spread`: the balance check's margin in x and y, k_sigma of the estimate's yaw
     # std and k_delay of `tip_yaw_std`'s over the delay in yaw), nothing subtracted: a slope is zero on
     # the margin's plateau next to a cliff, a point on the far side of it is not.
-    tip_uncertainty: str = "y"
+    tip_uncertainty: str = "sigma"
     # rad per square-root control step: the std of the latency compensation's yaw error over the delay
     # ("pose" only), 0.31-0.36 degrees per square-root step over 1, 2 and 4 steps of delay along 40 turns
     # of the 4-step latency row (x 0.6-0.9 mm, y 1.4-1.6 mm, as `delay_std`; docs/results/faults.md)
@@ -240,8 +240,6 @@ class MonitorConfig:
             bad("backup", f"must be one of {BACKUP_CHOICES}")
         if self.tip_uncertainty not in TIP_UNCERTAINTY:
             bad("tip_uncertainty", f"must be one of {TIP_UNCERTAINTY}")
-        if self.tip_uncertainty != "y" and not self.tip_stop:
-            bad("tip_uncertainty", "needs the tipping watch (tip_stop > 0)")
 
 
 OFF = MonitorConfig(enabled=False)

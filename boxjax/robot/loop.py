@@ -95,6 +95,7 @@ class PlannerStep:
         sigma: float | Callable[[], float] = 0.0,
         delay: int = 0,
         monitor_model=None,
+        yaw_sigma: float | Callable[[], float] = 0.0,
     ):
         if monitor.enabled and monitor.prior_params is not None and monitor_model is None:
             raise ValueError(
@@ -106,6 +107,8 @@ class PlannerStep:
         self.plan_state = None
         self.cfg, self.t = cfg, 0
         self.sigma: float | Callable[[], float] = sigma if callable(sigma) else float(sigma)
+        # the estimate's yaw std (rad), for the "sigma" tipping watch (`Monitor.tip_spread`)
+        self.yaw_sigma: float | Callable[[], float] = yaw_sigma if callable(yaw_sigma) else float(yaw_sigma)
         self.monitor = Monitor(cfg, monitor, delay) if monitor.enabled else None
         # the next call's (window (W, 5), belt speeds (2,), actions in flight (D, 4)) at the newest
         # estimate's time, set by the loop; None: the observation is the present as it is
@@ -130,7 +133,10 @@ class PlannerStep:
                 window, held = present_one(model, *late, np.asarray(obs.window, np.float32), own, bound)
             sigma = self.sigma() if callable(self.sigma) else self.sigma
             tip = tip_watch(self.monitor.m)
-            spread = self.monitor.tip_spread(sigma, np.asarray(obs.belt_speed)) if tip == "sigma" else None
+            spread = None
+            if tip == "sigma":
+                yaw = self.yaw_sigma() if callable(self.yaw_sigma) else self.yaw_sigma
+                spread = self.monitor.tip_spread(sigma, np.asarray(obs.belt_speed), yaw_sigma=yaw)
             check = monitor_check(
                 self.cfg,
                 model,
@@ -162,7 +168,8 @@ class RobotLoop:
       turn: rad, the turn to make (TaskConfig.target_yaw_delta, pi / 2).
       pose_noise: (mm, degrees) std of the tracked pose (the vision pipeline's specification), or None:
         the poses are taken as exact. pose_filter: the filter's settings (`FilterConfig`). With a
-        `PlannerStep` whose sigma is 0, its monitor's sigma becomes the filter's (`y_std`).
+        `PlannerStep` whose sigma is 0, its monitor's sigma becomes the filter's (`y_std`), and its yaw
+        sigma (0) the filter's yaw std (`yaw_std`).
       latency_model: a model with `rollout_sequence` (the planner's) to predict the window over the
         pipeline's latency, from the newest pose's stamp to `now` (whole control steps, at most
         `MAX_PREDICTED_STEPS`); None: the window is the newest poses as they are.
@@ -196,6 +203,8 @@ class RobotLoop:
         self.plan_step, self.cfg, self.turn, self.length = plan_step, cfg, float(turn), int(window)
         if self._sensor is not None and isinstance(plan_step, PlannerStep) and plan_step.sigma == 0.0:
             plan_step.sigma = self.y_std  # the monitor's margin: the filter's uncertainty, step by step
+            if plan_step.yaw_sigma == 0.0:
+                plan_step.yaw_sigma = self.yaw_std
         self.target_yaw = None if target_yaw is None else float(target_yaw)
         self._window: list[np.ndarray] = []
         self._belt_speed = np.zeros(2)
@@ -220,6 +229,12 @@ class RobotLoop:
         if self._sensor is None:
             return 0.0
         return self._filter.y_std() if self._filter is not None else 1e-3 * self._sensor.obs_noise_mm
+
+    def yaw_std(self) -> float:
+        """(rad) the standard deviation of the estimated box yaw, as `y_std`."""
+        if self._sensor is None:
+            return 0.0
+        return self._filter.std(2) if self._filter is not None else math.radians(self._sensor.obs_noise_deg)
 
     @property
     def p_target(self) -> np.ndarray | None:
