@@ -304,6 +304,11 @@ def test_controller_settings_round_trip():
     assert experiments.controller_from_settings(st).monitor.recover_until_worse
     del st["controller"]["monitor"]["recover_until_worse"]  # written before recoveries could end
     assert not experiments.controller_from_settings(st).monitor.recover_until_worse
+    # the tipping watch as it is, and written before it or its modes existed: what those runs ran with
+    assert experiments.controller_from_settings(st).monitor.tip_uncertainty == "sigma"
+    for name, then in (("tip_drag_std", 0.0), ("tip_uncertainty", "y"), ("tip_stop", 0.0)):
+        del st["controller"]["monitor"][name]
+        assert getattr(experiments.controller_from_settings(st).monitor, name) == then
     own = ControllerConfig(  # the monitor's own prior and the drag bound travel too
         monitor=MonitorConfig(prior_params=prior.PriorParams(carriage_omega=30.0), drag_bound=0.5)
     )

@@ -501,8 +501,9 @@ def controller_from_settings(st: dict) -> ControllerConfig:
     if isinstance(c.get("pose_filter"), dict):
         c["pose_filter"] = FilterConfig(**c["pose_filter"])
     # evaluations written before the runtime safety monitor ran without one
-    if isinstance(c.get("monitor"), dict):  # and before recover_until_worse
-        m = {"recover_until_worse": False, **c["monitor"]}
+    if isinstance(c.get("monitor"), dict):  # and before recover_until_worse, the tipping watch and its modes
+        old = {"recover_until_worse": False, "tip_stop": 0.0, "tip_uncertainty": "y", "tip_drag_std": 0.0}
+        m = {**old, **c["monitor"]}
         if isinstance(m.get("prior_params"), dict):
             m["prior_params"] = prior.PriorParams(**m["prior_params"])
         c["monitor"] = MonitorConfig(**m)
