@@ -418,21 +418,7 @@ def present_batch(own: bool, drag_bound: float):
     return jax.jit(jax.vmap(partial(present, own=own, drag_bound=drag_bound)))
 
 
-@partial(jax.jit, static_argnames=("cfg", "horizon", "backup", "tip"))
-def check(
-    cfg: Config,
-    model,
-    window,
-    belt_speed,
-    action,
-    horizon: int,
-    backup: str = "best",
-    held=None,
-    tip=False,
-    tip_spread=None,
-) -> Check:
-    """Jitted `predicted_errors`."""
-    return predicted_errors(cfg, model, window, belt_speed, action, horizon, backup, held, tip, tip_spread)
+check = jax.jit(predicted_errors, static_argnames=("cfg", "horizon", "backup", "tip"))  # one box
 
 
 @partial(jax.jit, static_argnames=("cfg", "horizon", "backup", "tip"))
