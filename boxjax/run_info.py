@@ -39,7 +39,9 @@ def use_compilation_cache(path: str | None = None) -> str | None:
         sys.stderr.write(f"boxjax: not keeping compiled programs ({path}: {e}); set {CACHE_ENV}\n")
         return None
     jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    # programs that compile in 0.5 s or more are kept, unless JAX's own variable says otherwise
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     return path
 
 

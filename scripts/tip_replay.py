@@ -9,7 +9,11 @@ over its last control steps (docs/results/faults.md, "Tipping").
 
 Prints one JSON line per step: the step, the tilt (degrees, after the step's action), the margin (mm, of the
 state the action was sent at: the controller's prior setting, `PriorParams.margin`, and the exact one), the
-carriages P1 / P2 and the box's x, y (mm) and yaw (degrees), the action.
+carriages P1 / P2 and the box's x, y (mm) and yaw (degrees), the action. An episode with a mass shift first
+gets a line with its step, the centre of mass it left (mm) and whether the motion told it (the prior's
+one-step prediction errors with the box before and after the shift, before and after its step:
+`shift_evidence`); the exact margin follows the slid masses from that step on, the controller's prior keeps
+the box it was given.
 """
 
 from __future__ import annotations
@@ -17,15 +21,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from boxjax import geometry, massdist, prior
+from boxjax import geometry, massdist, planning, prior
 from boxjax.config import DEFAULT
-from boxjax.control import batch
+from boxjax.control import batch, true_stability_margins
 from boxjax.control.models import planning_model
+from boxjax.control.world import World
 from boxjax.experiments import evaluation as experiments
 from boxjax.sim import native
 
@@ -54,11 +60,18 @@ def replay(out_dir: str, index: int, last: int) -> list[dict]:
     s = np.asarray(res.trace.s, np.float32)
     model = planning_model(cfg, ctrl, truth)
     margins = np.asarray(jax.jit(jax.vmap(model.stability_margin))(jnp.asarray(s)))
-    exact = prior.make_prior(
-        massdist.voxel_masses(truth, cfg.box), None, cfg.box, cfg.gripper, prior.PriorParams(margin="exact")
-    )
-    true_margins = np.asarray(jax.jit(jax.vmap(exact.stability_margin))(jnp.asarray(s)))
+    # the episode's mass shift, drawn from its key as the replay's world drew it: the true margin
+    # follows the slid masses from its step on (the controller's prior keeps the box it was given)
+    shift = World(cfg, faults, ctrl.pose_filter, key, truth).shift
+    if shift is not None:
+        shift.done = shift.step < len(actions)
+    true_margins = true_stability_margins(cfg, truth, s, shift)
     rows = []
+    if shift is not None:
+        com = np.round(1e3 * shift.com[:2], 1).tolist()
+        rows.append(
+            {"mass_shift_step": shift.step, "com_after_mm": com, **shift_evidence(cfg, truth, shift, res)}
+        )
     for t in range(max(0, len(actions) - last), len(actions)):
         rows.append(
             {
@@ -73,6 +86,28 @@ def replay(out_dir: str, index: int, last: int) -> list[dict]:
             }
         )
     return rows
+
+
+def shift_evidence(cfg, truth, shift, res) -> dict:
+    """Whether the motion told the shift: the prior's one-step prediction errors along the replayed states
+    (the actions applied, the measured belt speeds), with the box before the shift and with the box after
+    it, before and after its step (median position error in mm, yaw in degrees)."""
+    s, b, a = (np.asarray(x, np.float32) for x in (res.trace.s, res.trace.belt_speed, res.trace.actions))
+    t = np.arange(planning.MIN_WINDOW - 1, len(a))
+    windows = np.stack([s[i - planning.MIN_WINDOW + 1 : i + 1] for i in t])
+    out = {}
+    for name, masses in (("before", massdist.voxel_masses(truth, cfg.box)), ("after", shift.masses)):
+        model = prior.make_prior(jnp.asarray(masses, jnp.float32), None, cfg.box, cfg.gripper)
+        p = np.asarray(jax.jit(jax.vmap(partial(prior.predict, model)))(windows, b[t], a[t]))
+        e = p - s[t + 1]
+        pos, yaw = 1e3 * np.hypot(e[:, geometry.X], e[:, geometry.Y]), np.degrees(np.abs(e[:, geometry.YAW]))
+        for when, sel in (("pre", t < shift.step), ("post", t >= shift.step)):
+            if sel.any():
+                out[f"{name}_model_{when}_shift_mm_deg"] = [
+                    round(float(np.median(pos[sel])), 2),
+                    round(float(np.median(yaw[sel])), 3),
+                ]
+    return out
 
 
 def main(argv=None) -> dict:

@@ -87,9 +87,10 @@ def test_two_processes_give_the_rows_of_one(tmp_path):
         "--quiet",
     ]
     cmd = [sys.executable, "-m", "boxjax", *args, "--json"]
-    outs = _run_two(cmd, tmp_path / "two")
+    # one process first: it fills the session's compilation cache, which the two then read
     one = subprocess.run([*cmd, "--out", str(tmp_path / "one")], capture_output=True, text=True, timeout=300)
     assert one.returncode == 0, one.stderr[-2000:]
+    outs = _run_two(cmd, tmp_path / "two")
     worker = json.loads(outs[1].strip().splitlines()[-1])
     assert worker["process_id"] == 1 and worker["processes"] == 2 and "files" not in worker
 
