@@ -39,9 +39,11 @@ def use_compilation_cache(path: str | None = None) -> str | None:
         sys.stderr.write(f"boxjax: not keeping compiled programs ({path}: {e}); set {CACHE_ENV}\n")
         return None
     jax.config.update("jax_compilation_cache_dir", path)
-    # programs that compile in 0.5 s or more are kept, unless JAX's own variable says otherwise
+    # Every program is kept, the small ones too (unless JAX's own variable says otherwise): a command
+    # compiles ~130 programs of ~30 ms besides its planner; kept, a second `evaluate --boxes 2 --hazardous
+    # 1 --gradient-steps 0` takes 7.7-8.2 s instead of 12.8 s (2 cores, 2026-12-07), for ~1 MB of disk.
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path
 
 

@@ -711,17 +711,9 @@ def test_the_drag_bound_checks_the_worse_of_the_dragged_and_the_held_present():
         np.testing.assert_allclose(a, b, atol=1e-6)
 
 
-def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monkeypatch):
-    """With `drag_bound` and a late loop, `run_episode` and the batched `run_episodes` both check from the
-    held present as well (the carriages where the model's present has them); with no delay, from the
-    model's alone. With tip_uncertainty "sigma" both give the check the pose's spread (`tip_spread`):
-    nothing off with a perfect sensor and no delay, and over a delay in x, y and yaw; always the drag's
-    per m of carriage travel."""
-    from boxjax.control import batch, episode
-    from boxjax.control.config import ControllerConfig
-    from boxjax.planners.sampling import SamplingOptions
-    from boxjax.sim.faults import Faults
-
+def _spy_checks(monkeypatch) -> tuple[list, list]:
+    """Record what the one-box and the batched loops give the check: (window, held present) or None per
+    call, and the tipping watch's spread (N, 4)."""
     seen, spreads = [], []
 
     def spy(real):
@@ -736,24 +728,65 @@ def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monke
 
     monkeypatch.setattr(monitor, "check", spy(monitor.check))
     monkeypatch.setattr(monitor, "check_batch", spy(monitor.check_batch))
-    settings = MonitorConfig(drag_bound=1.0, tip_uncertainty="sigma")
-    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0), monitor=settings)
+    return seen, spreads
+
+
+def _both_loops(ctrl, late):
+    from boxjax.control import batch, episode
+
     box, key = massdist.named("A", CFG.box), jax.random.PRNGKey(3)
+    return (
+        lambda: episode.run_episode(CFG, box, key, ctrl=ctrl, max_steps=52, faults=late),
+        lambda: batch.run_episodes(CFG, [box], [key], ctrl=ctrl, max_steps=52, faults=late),
+    )
+
+
+def test_the_one_box_and_the_batched_loops_give_the_check_the_pose_spread(monkeypatch):
+    """With the default tipping watch ("sigma") `run_episode` and the batched `run_episodes` both give the
+    check the pose's spread (`tip_spread`): nothing off with a perfect sensor and no delay, and over a
+    delay in x, y and yaw; always the drag's per m of carriage travel. Without `drag_bound`, from the
+    model's present alone."""
+    from boxjax.control.config import ControllerConfig
+    from boxjax.planners.sampling import SamplingOptions
+    from boxjax.sim.faults import Faults
+
+    seen, spreads = _spy_checks(monkeypatch)
+    settings = MonitorConfig()
+    assert settings.tip_uncertainty == "sigma" and not settings.drag_bound
+    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0))
     for late in (Faults(obs_latency=2), Faults()):
-        for run in (
-            lambda f: episode.run_episode(CFG, box, key, ctrl=ctrl, max_steps=52, faults=f),
-            lambda f: batch.run_episodes(CFG, [box], [key], ctrl=ctrl, max_steps=52, faults=f),
-        ):
+        for run in _both_loops(ctrl, late):
             seen.clear()
             spreads.clear()
-            run(late)
-            assert seen, "the monitor checked nothing"
+            run()
+            assert seen and all(s is None for s in seen), "the monitor checked nothing, or a held present"
             assert all(np.all(s[:, 3] == np.float32(monitor.tip_drag(settings))) for s in spreads)
+            if late.obs_latency:
+                assert all(np.all(s[:, :3] > 0) for s in spreads)  # moving, late
+            else:
+                np.testing.assert_array_equal(np.concatenate(spreads)[:, :3], 0.0)
+
+
+@pytest.mark.slow
+def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monkeypatch):
+    """With `drag_bound` and a late loop, `run_episode` and the batched `run_episodes` both check from the
+    held present as well (the carriages where the model's present has them); with no delay, from the
+    model's alone. (Slow: `drag_bound` is off by default; the spread they give the check is the test
+    above.)"""
+    from boxjax.control.config import ControllerConfig
+    from boxjax.planners.sampling import SamplingOptions
+    from boxjax.sim.faults import Faults
+
+    seen, _ = _spy_checks(monkeypatch)
+    ctrl = ControllerConfig(sampling=SamplingOptions(gradient_steps=0), monitor=MonitorConfig(drag_bound=1.0))
+    for late in (Faults(obs_latency=2), Faults()):
+        for run in _both_loops(ctrl, late):
+            seen.clear()
+            run()
+            assert seen, "the monitor checked nothing"
             if not late.obs_latency:
                 assert all(s is None for s in seen)
-                np.testing.assert_array_equal(np.concatenate(spreads)[:, :3], 0.0)
                 continue
-            assert all(np.all(s[:, :3] > 0) for s in spreads)  # moving, late
             for window, held in seen:
                 w, h = window.reshape(-1, *window.shape[-2:]), held.reshape(-1, *held.shape[-2:])
                 np.testing.assert_array_equal(h[:, :, :2], w[:, :, :2])  # the same carriages
@@ -762,16 +795,15 @@ def test_the_one_box_and_the_batched_loops_give_the_check_the_held_present(monke
 
 def test_the_monitor_can_predict_with_its_own_prior_on_the_planners_belief(monkeypatch):
     """`MonitorConfig.prior_params`: the check runs with a prior of those settings on the belief the
-    planner's prior is built on, in the one-box and the batched loops (the on-device loop: the slow test
-    in tests/test_device_loop.py); a model given as it is (a black box) has no belief, and the robot
-    loop's PlannerStep is given it: each said before any work."""
+    planner's prior is built on (here the robot loop's; the one-box and the batched loops: the slow test
+    below; the on-device loop: the slow test in tests/test_device_loop.py); a model given as it is (a
+    black box) has no belief, and the robot loop's PlannerStep is given it: each said before any work."""
     from boxjax import prior as prior_mod
     from boxjax.control import batch, device_loop, episode
     from boxjax.control.config import ControllerConfig
     from boxjax.control.models import monitor_model, planning_model
     from boxjax.planners.sampling import SamplingOptions
     from boxjax.robot import PlannerStep
-    from boxjax.sim.faults import Faults
 
     own = prior_mod.PriorParams(carriage_omega=30.0, slip_eps=0.02)
     ctrl = ControllerConfig(
@@ -784,6 +816,28 @@ def test_the_monitor_can_predict_with_its_own_prior_on_the_planners_belief(monke
     np.testing.assert_array_equal(np.asarray(mine.masses), np.asarray(planner_prior.masses))  # one belief
     assert monitor_model(CFG, ControllerConfig(), box, planner_prior) is planner_prior
 
+    used, spy = _spy_params()
+    key = jax.random.PRNGKey(3)
+    with pytest.raises(ValueError, match="black box"):
+        episode.run_episode(CFG, box, key, ctrl=ctrl, model=planner_prior)
+    with pytest.raises(ValueError, match="black box"):
+        batch.run_episodes(CFG, [box], [key], ctrl=ctrl, model=planner_prior)
+    assert device_loop.supports(ctrl) is None
+    rest = planning.Planner("rest", lambda obs: None, lambda k, m, obs, st: (np.zeros(4), st, None))
+    with pytest.raises(ValueError, match="monitor_model"):  # the robot loop's: given its model
+        PlannerStep(rest, planner_prior, key, monitor=ctrl.monitor)
+    from boxjax.robot import loop as robot_loop
+
+    monkeypatch.setattr(robot_loop, "monitor_check", spy(robot_loop.monitor_check))
+    step = PlannerStep(rest, planner_prior, key, monitor=ctrl.monitor, monitor_model=mine)
+    step(planning.observation(planning.initial_window(_state()), jnp.zeros(2), 1.57))
+    assert used == [own]
+    with pytest.raises(ConfigError, match="prior_params"):
+        MonitorConfig(prior_params={"carriage_omega": 30.0})
+
+
+def _spy_params():
+    """(list of the models' PriorParams the wrapped checks were given, the wrapper)."""
     used = []
 
     def spy(real):
@@ -793,30 +847,30 @@ def test_the_monitor_can_predict_with_its_own_prior_on_the_planners_belief(monke
 
         return check
 
+    return used, spy
+
+
+@pytest.mark.slow
+def test_the_one_box_and_the_batched_loops_check_with_the_monitors_own_prior(monkeypatch):
+    """`MonitorConfig.prior_params` in `run_episode` and the batched `run_episodes`: every check is made
+    with the monitor's prior (slow: the option is off by default; the robot loop's: the test above)."""
+    from boxjax import prior as prior_mod
+    from boxjax.control import batch, episode
+    from boxjax.control.config import ControllerConfig
+    from boxjax.planners.sampling import SamplingOptions
+    from boxjax.sim.faults import Faults
+
+    own = prior_mod.PriorParams(carriage_omega=30.0, slip_eps=0.02)
+    ctrl = ControllerConfig(
+        sampling=SamplingOptions(gradient_steps=0), monitor=MonitorConfig(prior_params=own)
+    )
+    box, key, late = massdist.named("A", CFG.box), jax.random.PRNGKey(3), Faults(obs_latency=2)
+    used, spy = _spy_params()
     monkeypatch.setattr(monitor, "check", spy(monitor.check))
     monkeypatch.setattr(monitor, "check_batch", spy(monitor.check_batch))
-    key, late = jax.random.PRNGKey(3), Faults(obs_latency=2)
     episode.run_episode(CFG, box, key, ctrl=ctrl, max_steps=50, faults=late)
     batch.run_episodes(CFG, [box], [key], ctrl=ctrl, max_steps=50, faults=late)
     assert used and all(p == own for p in used)
-
-    with pytest.raises(ValueError, match="black box"):
-        episode.run_episode(CFG, box, key, ctrl=ctrl, model=planner_prior)
-    with pytest.raises(ValueError, match="black box"):
-        batch.run_episodes(CFG, [box], [key], ctrl=ctrl, model=planner_prior)
-    assert device_loop.supports(ctrl) is None
-    rest = planning.Planner("rest", lambda obs: None, lambda k, m, obs, st: (np.zeros(4), st, None))
-    with pytest.raises(ValueError, match="monitor_model"):  # the robot loop's: given its model
-        PlannerStep(rest, planner_prior, key, monitor=ctrl.monitor)
-    used.clear()
-    from boxjax.robot import loop as robot_loop
-
-    monkeypatch.setattr(robot_loop, "monitor_check", spy(robot_loop.monitor_check))
-    step = PlannerStep(rest, planner_prior, key, monitor=ctrl.monitor, monitor_model=mine)
-    step(planning.observation(planning.initial_window(_state()), jnp.zeros(2), 1.57))
-    assert used == [own]
-    with pytest.raises(ConfigError, match="prior_params"):
-        MonitorConfig(prior_params={"carriage_omega": 30.0})
 
 
 def test_the_compensation_error_script_summarises_per_square_root_step_and_refuses_bad_input(

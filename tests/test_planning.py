@@ -129,6 +129,7 @@ def test_mixture_of_prior_settings_particles_follow_their_members():
         planning.Mixture(())
 
 
+@pytest.mark.slow  # the Mixture (`friction_set`, off by default) is planned through in the test above
 def test_a_mixture_of_one_setting_twice_plans_as_that_setting_alone():
     o = sp.SamplingOptions(n_samples=8, horizon=3, gradient_steps=0)
     a = _model("A")
