@@ -469,9 +469,11 @@ def test_by_default_the_state_window_is_used_for_a_noisy_sensor_only():
         FilterConfig(window="line")
 
 
+@pytest.mark.slow
 def test_batched_episodes_give_the_model_driven_filter_its_prediction_every_mpc_step():
     """The batched path (`batch.run_episodes`) makes the filter's model predictions in one call per step,
-    for every live box, as `run_episode` does per box."""
+    for every live box, as `run_episode` does per box. (Slow: the model-driven filter is off by default;
+    the one-box loop's is in the default suite.)"""
     from boxjax import ControllerConfig
     from boxjax.control import batch
     from boxjax.control import world as world_mod

@@ -165,8 +165,9 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
     narrow = planning.initial_window(_state(p1=-0.1, p2=0.1))
     assert np.isinf(float(monitor.check(CFG, prior, narrow, belt, turn, 10).go_tip))
     c = monitor.check(CFG, prior, spread, belt, turn, 10, "hold", tip=True)
-    states = prior.rollout_sequence(spread, belt, jnp.concatenate([turn[None], c.go_stop[:-1]]))
-    margins = [prior.stability_margin(spread[-1])] + [prior.stability_margin(s) for s in states]
+    states = jax.jit(prior.rollout_sequence)(spread, belt, jnp.concatenate([turn[None], c.go_stop[:-1]]))
+    margin = jax.jit(prior.stability_margin)  # one program for every state below (eager: op by op)
+    margins = [margin(spread[-1])] + [margin(s) for s in states]
     np.testing.assert_allclose(float(c.go_tip), float(min(margins)), atol=1e-6)
     on_middle = monitor.check(CFG, prior, narrow, belt, turn, 10, "hold", tip=True)
     assert float(c.go_tip) < float(on_middle.go_tip)
@@ -181,7 +182,7 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
     rest = jnp.zeros(4, jnp.float32)
     at_rest = monitor.check(CFG, prior, spread, belt, rest, 2, "hold", tip="slope")  # 2 steps: compiles fast
     np.testing.assert_array_equal(np.asarray(c.go_tip_slope), 0)  # the margin alone: no slope computed
-    assert float(at_rest.go_tip) == pytest.approx(float(prior.stability_margin(spread[-1])), abs=1e-4)
+    assert float(at_rest.go_tip) == pytest.approx(float(margin(spread[-1])), abs=1e-4)
     assert (
         monitor.tip_watch(MonitorConfig(tip_uncertainty="y")) is True
         and monitor.tip_watch(MonitorConfig(tip_stop=0.0)) is False
@@ -192,7 +193,7 @@ def test_the_tipping_check_is_the_smallest_stability_margin_of_the_action_and_it
     for i in (geometry.X, geometry.Y, geometry.YAW):
         up, down = s0.copy(), s0.copy()
         up[i], down[i] = s0[i] + h, s0[i] - h
-        m_up, m_down = (float(prior.stability_margin(jnp.asarray(z, jnp.float32))) for z in (up, down))
+        m_up, m_down = (float(margin(jnp.asarray(z, jnp.float32))) for z in (up, down))
         fd.append(abs(m_up - m_down) / (2 * h))
     np.testing.assert_allclose(np.asarray(at_rest.go_tip_slope), fd, rtol=0.05, atol=0.02)
     assert float(np.max(at_rest.go_tip_slope)) > 0.1  # the margin does move with the pose here
