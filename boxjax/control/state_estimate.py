@@ -210,6 +210,10 @@ class PoseFilter:
         """(m) the standard deviation of the present box y (`std`)."""
         return self.std(1)
 
+    def yaw_std(self) -> float:
+        """(rad) the standard deviation of the present box yaw (`std`)."""
+        return self.std(2)
+
     def velocity(self) -> np.ndarray:
         """(3,) the estimated velocity of (x, y, yaw) (m/s, rad/s)."""
         return self.x[:, 1].copy()

@@ -165,7 +165,7 @@ class World:
     def yaw_std(self) -> float:
         """(rad) the standard deviation of the controller's estimate of the box's yaw, as `y_std`."""
         if self.filter is not None:
-            return self.filter.std(2)
+            return self.filter.yaw_std()
         if self.sensor is not None:
             return math.radians(self.faults.obs_noise_deg)
         return 0.0

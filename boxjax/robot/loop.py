@@ -67,6 +67,11 @@ _compensate = jax.jit(planning.compensate)
 PlanStep = Callable[[planning.Observation], Any]  # observation -> action (4,) (v1, v2, dp1, dp2)
 
 
+def _now(value: float | Callable[[], float]) -> float:
+    """A std given as a number or as a function of the moment (the loop's filter, step by step)."""
+    return value() if callable(value) else value
+
+
 class PlannerStep:
     """A boxjax `planning.Planner` and its model as a plan step `obs -> action (4,)`: it keeps the
     planner's own state (`init` on the first call, then `optimize`'s plan_state) and splits `key` once
@@ -131,12 +136,12 @@ class PlannerStep:
             own, bound = self.monitor_model is not None, self.monitor.m.drag_bound
             if late is not None and (own or bound):  # predicted from the newest estimate by the monitor
                 window, held = present_one(model, *late, np.asarray(obs.window, np.float32), own, bound)
-            sigma = self.sigma() if callable(self.sigma) else self.sigma
+            sigma = _now(self.sigma)
             tip = tip_watch(self.monitor.m)
             spread = None
             if tip == "sigma":
-                yaw = self.yaw_sigma() if callable(self.yaw_sigma) else self.yaw_sigma
-                spread = self.monitor.tip_spread(sigma, np.asarray(obs.belt_speed), yaw_sigma=yaw)
+                belt = np.asarray(obs.belt_speed)
+                spread = self.monitor.tip_spread(sigma, belt, yaw_sigma=_now(self.yaw_sigma))
             check = monitor_check(
                 self.cfg,
                 model,
@@ -234,7 +239,9 @@ class RobotLoop:
         """(rad) the standard deviation of the estimated box yaw, as `y_std`."""
         if self._sensor is None:
             return 0.0
-        return self._filter.std(2) if self._filter is not None else math.radians(self._sensor.obs_noise_deg)
+        return (
+            self._filter.yaw_std() if self._filter is not None else math.radians(self._sensor.obs_noise_deg)
+        )
 
     @property
     def p_target(self) -> np.ndarray | None:
