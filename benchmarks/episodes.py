@@ -114,8 +114,24 @@ def mjx_loop(cfg, ctrl, warm_dists, warm_keys, dists, keys, width: int, max_step
     t0 = time.perf_counter()
     device_loop.run_episodes(cfg, warm_dists * n, warm_keys * n, ctrl=ctrl, slots=width, max_steps=48)
     warm = time.perf_counter() - t0
+    print(f"mjx {width} slots: compiled and warmed up in {warm:.1f} s", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    res = device_loop.run_episodes(cfg, dists, keys, ctrl=ctrl, slots=width, max_steps=max_steps)
+    ended, said = [0], [t0]
+
+    def progress(_b, _r):  # a run cut short by a time limit still says its rate so far (stderr)
+        ended[0] += 1
+        now = time.perf_counter()
+        if now - said[0] >= 10 or ended[0] == len(dists):
+            said[0] = now
+            print(
+                f"mjx {width} slots: {ended[0]}/{len(dists)} episodes ended in {now - t0:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    res = device_loop.run_episodes(
+        cfg, dists, keys, ctrl=ctrl, slots=width, max_steps=max_steps, progress=progress
+    )
     wall = time.perf_counter() - t0
     steps = sum(r.summary["steps"] for r in res)
     return {

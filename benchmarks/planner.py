@@ -15,16 +15,18 @@ Prints ONE JSON object:
     `PriorParams.margin`, one box and 16 vmapped, the calls interleaved;
   * robust planning over three belt frictions (`--friction-set-only`): the default planner's step with
     the prior and with the Mixture, same run.
-  * the program's structure (`--structure-only`, on every kind of device present: the CPU and, where
-    there is one, the accelerator): the default planner and the one without gradient steps, with the
-    prior's step looped (`PriorParams(unroll=False)`) and unrolled (the default), for one call and 16
-    calls vmapped (one box, 16 keys: the width of a batched evaluation's call): compile time, latency
-    (the variants' calls interleaved, median), and the operations and loop iterations one call runs,
-    counted from the compiled HLO (`_hlo.dynamic_ops`; on a GPU each operation is a kernel launch and
-    each loop iteration a read-back of its condition), and for one call the functions the operations
-    come from (`_hlo.by_source`).
+  * the program's structure (`--structure-only`, on every kind of device present: the accelerator where
+    there is one, then the CPU; each device's part also on stderr as it ends): the default planner, the
+    one without gradient steps and the wide ones (STRUCTURE_PLANNERS; `--structure-planners` picks), with
+    the prior's step looped (`PriorParams(unroll=False)`) and unrolled (the default; `--unrolled-only`),
+    for one call and 16 calls vmapped (one box, 16 keys: the width of a batched evaluation's call):
+    compile time, latency (the variants' calls interleaved, median), and the operations and loop
+    iterations one call runs, counted from the compiled HLO (`_hlo.dynamic_ops`; on a GPU each operation
+    is a kernel launch and each loop iteration a read-back of its condition), and for one call the
+    functions the operations come from (`_hlo.by_source`). `--structure-devices accelerator|cpu`: one.
 Run: python benchmarks/planner.py [--calls 300] [--variant slip|paper] [--rule random] [--monitor-only]
-     [--friction-set-only] [--structure-only]
+     [--friction-set-only] [--structure-only [--structure-devices all|accelerator|cpu]
+     [--structure-planners NAME ...] [--unrolled-only]]
 """
 
 from __future__ import annotations
@@ -104,7 +106,32 @@ def main() -> None:
         action="store_true",
         help="the planners' operations, loops, compile time and latency (STRUCTURE_PLANNERS), every device",
     )
+    ap.add_argument(
+        "--structure-devices",
+        choices=("all", "accelerator", "cpu"),
+        default="all",
+        help="with --structure-only: every kind of device (the accelerator first), or one (default all)",
+    )
+    ap.add_argument(
+        "--structure-planners",
+        nargs="+",
+        choices=tuple(STRUCTURE_PLANNERS),
+        help="with --structure-only: only these planners (default all)",
+    )
+    ap.add_argument(
+        "--unrolled-only",
+        action="store_true",
+        help="with --structure-only: only the prior's unrolled step (the default), not the looped one",
+    )
     args = ap.parse_args()
+    structure_opts = (args.structure_devices != "all", args.structure_planners, args.unrolled_only)
+    if any(structure_opts) and not args.structure_only:
+        ap.error("--structure-devices, --structure-planners and --unrolled-only need --structure-only")
+    devices = _device_kinds()
+    if args.structure_devices != "all":
+        devices = [d for d in devices if (d.platform == "cpu") == (args.structure_devices == "cpu")]
+        if not devices:
+            ap.error(f"--structure-devices {args.structure_devices}: none here (JAX sees {jax.devices()})")
     calls = max(args.calls, 200)
     cfg = DEFAULT
     box, gripper = cfg.box, cfg.gripper
@@ -133,10 +160,16 @@ def main() -> None:
         "horizon": args.horizon,
     }
     if args.structure_only:
-        out["structure"] = {
-            d.platform: _structure(cfg, masses, window, speed, target, keys, min(calls, 100), d)
-            for d in _device_kinds()
+        planners = {
+            name: (kw, tuple(u for u in unrolls if u or not args.unrolled_only), vmapped)
+            for name, (kw, unrolls, vmapped) in STRUCTURE_PLANNERS.items()
+            if args.structure_planners is None or name in args.structure_planners
         }
+        out["structure"] = {}
+        for d in devices:  # the accelerator first: a run cut short still has its numbers on stderr
+            res = _structure(cfg, masses, window, speed, target, keys, min(calls, 100), d, planners)
+            print(json.dumps({d.platform: res}), file=sys.stderr, flush=True)
+            out["structure"][d.platform] = res
         _finish(out)
         return
     if args.margin_only:
@@ -296,11 +329,9 @@ def _margins(cfg, masses, window, speed, target, keys, calls: int, boxes: int = 
 
 
 def _device_kinds() -> list:
-    """The first device of each platform present: the CPU, and the accelerator where there is one."""
-    kinds = {jax.devices("cpu")[0].platform: jax.devices("cpu")[0]}
-    if jax.default_backend() != "cpu":
-        kinds[jax.devices()[0].platform] = jax.devices()[0]
-    return list(kinds.values())
+    """The first device of each platform present: the accelerator where there is one, then the CPU."""
+    kinds = [jax.devices()[0]] if jax.default_backend() != "cpu" else []
+    return [*kinds, jax.devices("cpu")[0]]
 
 
 # The planners of `--structure-only`: name -> (SamplingOptions, prior unrolled / looped, also vmapped over
@@ -318,12 +349,14 @@ STRUCTURE_PLANNERS = {
 }
 
 
-def _structure(cfg, masses, window, speed, target, keys, calls: int, device, boxes: int = 16) -> dict:
-    """The planners of STRUCTURE_PLANNERS on `device`, one call and (where asked) `boxes` calls vmapped
-    (one box, as many keys): compile time, operations and loop iterations per call (`_hlo.dynamic_ops`),
-    and the latency with every variant's calls interleaved (median)."""
+def _structure(
+    cfg, masses, window, speed, target, keys, calls: int, device, planners=None, boxes: int = 16
+) -> dict:
+    """The planners of `planners` (default STRUCTURE_PLANNERS) on `device`, one call and (where asked)
+    `boxes` calls vmapped (one box, as many keys): compile time, operations and loop iterations per call
+    (`_hlo.dynamic_ops`), and the latency with every variant's calls interleaved (median)."""
     variants = {}
-    for planner_name, (kw, unrolls, vmapped) in STRUCTURE_PLANNERS.items():
+    for planner_name, (kw, unrolls, vmapped) in (planners or STRUCTURE_PLANNERS).items():
         opts = sp.SamplingOptions(**kw)
         for unroll in unrolls:
             model = jax.device_put(prior.make_prior(masses, unroll=unroll), device)
