@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import numpy as np
@@ -24,8 +25,9 @@ from boxjax.control import ControllerConfig
 from boxjax.control import episode as episode_mod
 from boxjax.estimator import explore
 from boxjax.experiments import evaluation as experiments
-from boxjax.fileio import atomic_path
+from boxjax.fileio import check_writable_dir
 from boxjax.sim.faults import Faults
+from boxjax.training.estimator import write_json
 
 WORLDS = {
     "none": Faults(),
@@ -80,6 +82,11 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     if len(args.seeds) != len(args.families) or args.boxes < 1:
         ap.error("give one --seeds value per family and --boxes >= 1")
+    if args.out:
+        try:
+            check_writable_dir(os.path.dirname(os.path.abspath(args.out)), "--out's folder")
+        except ValueError as e:
+            ap.error(str(e))
     res = {"boxes": args.boxes, "runs": []}
     t0 = time.time()
     for family, seed in zip(args.families, args.seeds, strict=True):
@@ -90,9 +97,7 @@ def main(argv=None) -> dict:
                 res["runs"].append(row)
                 print(f"{time.time() - t0:6.0f} s  {json.dumps(row)}", flush=True)
     if args.out:
-        with atomic_path(args.out) as tmp, open(tmp, "w") as f:
-            json.dump(res, f, indent=1)
-            f.write("\n")
+        write_json(args.out, res)
     return res
 
 
