@@ -383,6 +383,14 @@ def _structure(
                 if width == 1:  # where the operations come from: the 12 largest functions of boxjax
                     variants[name]["sources"] = dict(list(by_source(text).items())[:12])
                 variants[name]["_call"] = (compiled, key_of, model, nominal)
+                early = []  # 10 calls now, on stderr: a run cut short before the interleaved timing has these
+                for i in range(10):
+                    t0 = time.perf_counter()
+                    jax.block_until_ready(compiled(key_of(i), model, nominal))
+                    early.append(time.perf_counter() - t0)
+                said = {k: variants[name][k] for k in ("compile_s", "ops", "while_iterations")}
+                said["early_median_ms"] = float(1e3 * np.median(early))
+                print(json.dumps({"device": device.platform, name: said}), file=sys.stderr, flush=True)
     times = {name: [] for name in variants}
     for i in range(calls):
         for name, v in variants.items():
