@@ -4,8 +4,10 @@ on few safe ones: 0 of 300 in the realistic world at ccd45e9), the oracle refusi
 through the exploration, so what is counted is the boxes lost WHILE exploring (docs/results/faults.md,
 "The exploration guard in a late, noisy world").
 
-    python scripts/guard_stop_study.py --families gaussian items --seeds 5 6 --boxes 300 \
-        --out benchmarks/results_guard_stop.json
+    python scripts/guard_stop_study.py --families gaussian items --seeds 5 6 --boxes 300 --out FILE
+
+(benchmarks/results_guard_stop.json: (gaussian, 5), (items, 6), (gaussian, 7), (items, 8), (slabs, 9),
+(scatter, 10), one family per process, merged.)
 
 The hold variant is this study's (`HoldGuard`, injected where every path builds its guard,
 `episode.guarded_exploration`); the controller has no such option today. Native batched episodes.
