@@ -116,15 +116,16 @@ def mjx_loop(cfg, ctrl, warm_dists, warm_keys, dists, keys, width: int, max_step
     warm = time.perf_counter() - t0
     print(f"mjx {width} slots: compiled and warmed up in {warm:.1f} s", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    ended, said = [0], [t0]
+    ended, said = 0, t0
 
     def progress(_b, _r):  # a run cut short by a time limit still says its rate so far (stderr)
-        ended[0] += 1
+        nonlocal ended, said
+        ended += 1
         now = time.perf_counter()
-        if now - said[0] >= 10 or ended[0] == len(dists):
-            said[0] = now
+        if now - said >= 10 or ended == len(dists):
+            said = now
             print(
-                f"mjx {width} slots: {ended[0]}/{len(dists)} episodes ended in {now - t0:.1f} s",
+                f"mjx {width} slots: {ended}/{len(dists)} episodes ended in {now - t0:.1f} s",
                 file=sys.stderr,
                 flush=True,
             )
