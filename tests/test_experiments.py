@@ -262,6 +262,7 @@ def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path
         (["rotate", "--estimator", "learned", "--planner", "paper", "--belief", "ensemble"], "sampling"),
         (["evaluate", "--boxes", "3", "--explore-guard", "off", "--guard-lead", "2"], "--guard-lead"),
         (["evaluate", "--boxes", "3", "--guard-lead", "-1"], "--guard-lead"),
+        (["evaluate", "--boxes", "3", "--explore-guard", "off", "--guard-stop", "hold"], "--guard-stop"),
         (["evaluate", "--boxes", "3", "--hazard-family", "scatter"], "--hazardous 0"),
         (["train-moments", "--boxes", "40", "--out", "m.txt"], ".npz"),
         (["estimator-eval", "--boxes", "2", "--moments", "/nonexistent.npz"], "nonexistent"),
@@ -270,6 +271,24 @@ def test_evaluate_cli_writes_rows_and_a_box_replays_to_the_same_summary(tmp_path
 def test_bad_input_exits_2_naming_the_problem(argv, message, capsys):
     assert main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+def test_the_guard_holds_when_the_pose_is_noisy_or_late():
+    """ "auto" holds when the controller sees the pose through a noisy or late sensor and re-centres on the
+    exact pose (dropped frames alone or a plant mismatch leave it exact); a stop named is kept."""
+    from boxjax.control.episode import guard_stop
+    from boxjax.sim.faults import Faults
+
+    auto = ControllerConfig()
+    assert guard_stop(auto, Faults()) == "recentre"
+    assert guard_stop(auto, Faults(friction=0.4, carriage_gain=0.8)) == "recentre"
+    assert guard_stop(auto, Faults(drop_rate=0.05)) == "recentre"
+    for fault in ({"obs_noise_mm": 1.0}, {"obs_latency": 1}, {"obs_noise_deg": 1.0}):
+        assert guard_stop(auto, Faults(**fault)) == "hold", fault
+    assert guard_stop(ControllerConfig(explore_guard_stop="recentre"), Faults(obs_latency=2)) == "recentre"
+    assert guard_stop(ControllerConfig(explore_guard_stop="hold"), Faults()) == "hold"
+    with pytest.raises(ValueError, match="explore_guard_stop must be one of"):
+        ControllerConfig(explore_guard_stop="brake")
 
 
 @pytest.mark.parametrize("value", ["1.5", "0", "lots"])

@@ -190,3 +190,51 @@ def test_models_trained_on_another_exploration_are_refused():
     assert config_io.field_mismatches(stored, DESIGNED_CFG.to_dict(), ["task.exploration"]) == [
         ("task.exploration", config_io.MISSING, "designed")
     ]
+
+
+@pytest.mark.parametrize("stop", explore.STOPS)
+def test_guard_stop_after_a_trip(stop):
+    """Once tripped, the guard sends GUARD_STEPS steps of its stop and ends: both stop the belts; a
+    re-centring steps both carriages towards the box (at most one position step), a hold keeps them still."""
+    guard = explore.Guarded(DEFAULT, 0.875, stop=stop)
+    s = np.array([-0.1, 0.1, 0.0, 0.037, 0.0])  # 3.7 cm off the midline: past 3.5 cm
+    sent = []
+    while (a := guard.next(s, 0.037)) is not None:
+        sent.append(a)
+    assert guard.tripped and len(sent) == explore.GUARD_STEPS
+    sent = np.array(sent)
+    np.testing.assert_array_equal(sent[:, :2], 0.0)  # belts to rest
+    step = DEFAULT.gripper.max_position_step
+    np.testing.assert_allclose(sent[:, 2:], step if stop == "recentre" else 0.0)
+    assert ("re-centred under it" in guard.why()) == (stop == "recentre")
+    assert ("held still" in guard.why()) == (stop == "hold")
+    with pytest.raises(ValueError, match="stop must be one of"):
+        explore.Guarded(DEFAULT, 0.875, stop="brake")
+
+
+def test_the_offline_guard_study_trips_where_the_guard_does():
+    """`scripts/guard_trend_study.py` judges guard rules on unguarded records: its version of the guard's own
+    rule must trip at the very step `explore.Guarded` does on the same seen poses, or its table is wrong."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "scripts" / "guard_trend_study.py"
+    spec = importlib.util.spec_from_file_location("guard_trend_study", path)
+    study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(study)
+    rng = np.random.default_rng(0)
+    n, boxes = 40, 60
+    seen = np.cumsum(rng.normal(0, 0.004, (boxes, n)), axis=1)  # wandering offsets, some past the guard
+    seen[: boxes // 2, 10:] += 0.008 * np.arange(n - 10)  # half swing away ~8 mm a step from step 10
+    for noise in (0.0, 0.003):
+        offline = study.trip_frames(seen, 3, noise, 0.875 * DEFAULT.task.balance_limit)
+        for i in range(boxes):
+            guard = explore.Guarded(DEFAULT, 0.875, lead=3, noise=noise)
+            tripped_at = -1
+            for t, y in enumerate(seen[i]):
+                guard.next(np.array([-0.1, 0.1, 0.0, y, 0.0]), abs(y))
+                if guard.tripped:
+                    tripped_at = t
+                    break
+            assert offline[i] == tripped_at, (noise, i)
+        assert (offline >= 0).sum() > boxes // 2  # the test trips (the swings at least)

@@ -118,14 +118,22 @@ def _states(rng, n, swing_at):
 
 
 @pytest.mark.parametrize(
-    "guard,settle,lead,noise,swing_at",
-    [(0.875, 0, 3, 0.0, 30), (0.875, 2, 3, 0.003, 200), (0.875, 0, 0, 0.0, 10), (None, 3, 3, 0.0, 5)],
+    "guard,settle,lead,noise,swing_at,stop",
+    [
+        (0.875, 0, 3, 0.0, 30, "recentre"),
+        (0.875, 2, 3, 0.003, 200, "recentre"),
+        (0.875, 0, 0, 0.0, 10, "recentre"),
+        (None, 3, 3, 0.0, 5, "recentre"),
+        (0.875, 2, 3, 0.003, 30, "hold"),
+    ],
 )
-def test_pure_guard_sends_what_the_host_guard_sends(guard, settle, lead, noise, swing_at):
+def test_pure_guard_sends_what_the_host_guard_sends(guard, settle, lead, noise, swing_at, stop):
     rng = np.random.default_rng(swing_at)
-    host = explore.Guarded(CFG, guard, settle=settle, lead=lead, noise=noise)
+    host = explore.Guarded(CFG, guard, settle=settle, lead=lead, noise=noise, stop=stop)
     st = guard_pure.init()
-    step = jax.jit(partial(guard_pure.step, CFG, guard=guard, settle=settle, lead=lead, noise=noise))
+    step = jax.jit(
+        partial(guard_pure.step, CFG, guard=guard, settle=settle, lead=lead, noise=noise, stop=stop)
+    )
     for t, s in enumerate(_states(rng, 120, swing_at)):
         bal = abs(s[3] - 0.5 * (s[0] + s[1]))
         expected = host.next(s, bal)
@@ -140,6 +148,6 @@ def test_pure_guard_sends_what_the_host_guard_sends(guard, settle, lead, noise, 
     if host.tripped:
         np.testing.assert_allclose([float(st.worst), float(st.judged)], [host.worst, host.judged], atol=1e-6)
         text = explore.guard_explanation(
-            CFG, int(st.k), float(st.worst), float(st.judged), lead, host.threshold
+            CFG, int(st.k), float(st.worst), float(st.judged), lead, host.threshold, stop
         )
         assert text == host.why()

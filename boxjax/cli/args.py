@@ -318,6 +318,16 @@ def planner_options(
     )
     option(
         p,
+        "--guard-stop",
+        default="auto",
+        choices=("auto", "recentre", "hold"),
+        used_by=(*used_by, lambda a: None if a.explore_guard else "does nothing with --explore-guard off"),
+        help="what the exploration guard does once tripped: recentre the carriages under the box, hold "
+        "them still (the belts stop either way), or auto: hold when the sensor's pose is noisy or late, "
+        "re-centre when it is exact",
+    )
+    option(
+        p,
         "--variant",
         default="slip",
         choices=("slip", "paper"),

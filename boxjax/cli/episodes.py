@@ -174,6 +174,7 @@ def _controller_config(args):
         belief=getattr(args, "belief", None) or "mean",
         explore_guard=args.explore_guard or None,
         explore_guard_lead=args.guard_lead,
+        explore_guard_stop=args.guard_stop,
         friction_set=tuple(args.friction_set) if getattr(args, "friction_set", None) else None,
         monitor=monitor.OFF if getattr(args, "monitor", "on") == "off" else monitor.MonitorConfig(**tip),
         delay_reference=getattr(args, "slow_when_late", 2),

@@ -8,6 +8,7 @@ from typing import Any
 from boxjax import prior
 from boxjax.control.monitor import MonitorConfig
 from boxjax.control.state_estimate import FilterConfig
+from boxjax.estimator import explore
 from boxjax.planners import paper as planner
 from boxjax.planners import registry
 from boxjax.planners.registry import PLANNERS  # noqa: F401 (the built-in planner names, for the CLI)
@@ -44,6 +45,13 @@ class ControllerConfig:
     # refused (0 before; 3 with 1 mm of pose noise); lead 4 refused 6 of them. The trend discounts the
     # sensor's stated pose noise (realistic world: 92/100 turned, as with lead 0; without it 89/100).
     explore_guard_lead: int = 3
+    # What the guard does once tripped (`explore.STOPS`): "recentre" the carriages under the box, "hold"
+    # them still (the belts stop either way), or "auto" (default): hold when the sensor's pose is noisy or
+    # late, re-centre when it is exact (`episode.guard_stop`). Re-centring on a late, noisy estimate chases
+    # where the box was and drags it off: realistic world, 1,800 hazardous boxes of four families, 88 lost
+    # while exploring re-centring, 61 holding; with the exact pose re-centring loses 3, holding 30
+    # (docs/results/faults.md, "The guard's stop, chosen by the sensor").
+    explore_guard_stop: str = "auto"
     planner: str = "sampling"  # "sampling": predictive sampling (default); "paper": one-step Pareto shooting
     sampling: Any = None  # planners.sampling.SamplingOptions (None: its defaults)
     simulator: Any = None  # planners.simulator.SimulatorOptions (None: its defaults)
@@ -94,6 +102,9 @@ class ControllerConfig:
             )
         if self.explore_guard_lead < 0:
             raise ValueError(f"explore_guard_lead must be >= 0 control steps, got {self.explore_guard_lead}")
+        if self.explore_guard_stop not in ("auto", *explore.STOPS):
+            stops = ("auto", *explore.STOPS)
+            raise ValueError(f"explore_guard_stop must be one of {stops}, got {self.explore_guard_stop!r}")
         if self.explore_guard is not None and not 0 < self.explore_guard < 1:
             raise ValueError(
                 "explore_guard must be a fraction of the balance limit in (0, 1) or None, got "

@@ -104,6 +104,7 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
     env = mjx_backend.env_for(cfg)
     mpc = make_planner(cfg, ctrl)
     guard = ctrl.explore_guard
+    stop = controller.guard_stop(ctrl, Faults())  # the world here has no faults
     n_explore = explore.N_STEPS + explore.GUARD_STEPS + 1
     settings = ctrl.monitor
 
@@ -114,7 +115,7 @@ def _programs(cfg: Config, ctrl: ControllerConfig, block: int):
             state, g, exploring = carry
             asked = exploring & ~state.done & (state.t < max_steps)
             g_next, a, over = guard_pure.step(
-                cfg, g, state.s, state.balance_error, guard, lead=ctrl.explore_guard_lead
+                cfg, g, state.s, state.balance_error, guard, lead=ctrl.explore_guard_lead, stop=stop
             )
             g = _where(asked, g_next, g)
             live = asked & ~over
@@ -334,6 +335,7 @@ def run_episodes(
                 decided[b] = ({}, None, explore.guard_explanation(
                     cfg, int(g_host.k[k]), float(g_host.worst[k]), float(g_host.judged[k]),
                     ctrl.explore_guard_lead, ctrl.explore_guard * cfg.task.balance_limit,
+                    controller.guard_stop(ctrl, Faults()),
                 ))  # fmt: skip
         explored.append((idx[: min(width, B - lo)], states))
 

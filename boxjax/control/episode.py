@@ -83,8 +83,9 @@ def first_window(s) -> list:
 def guarded_exploration(cfg: Config, ctrl: ControllerConfig, world: World, fraction: float | None):
     """The exploration of one box behind its guard (`explore.Guarded`: trips at `fraction` of the balance
     limit, None: never; looks `ctrl.explore_guard_lead` steps ahead, discounting the sensor's stated noise,
-    and rests for the world's delay at the end), or None when the controller does not explore. Every path
-    that explores (`run_episode`, the batched episodes, their replay) builds it here."""
+    stops as `guard_stop` says and rests for the world's delay at the end), or None when the controller
+    does not explore. Every path that explores (`run_episode`, the batched episodes, their replay) builds
+    it here."""
     if not ctrl.explore:
         return None
     return explore.Guarded(
@@ -93,7 +94,21 @@ def guarded_exploration(cfg: Config, ctrl: ControllerConfig, world: World, fract
         settle=world.exploration_delay,
         lead=ctrl.explore_guard_lead,
         noise=world.stated_noise_m,
+        stop=guard_stop(ctrl, world.faults),
     )
+
+
+def guard_stop(ctrl: ControllerConfig, faults: Faults) -> str:
+    """What the exploration guard does once tripped (`explore.STOPS`): `ctrl.explore_guard_stop`, its
+    "auto" resolved by the sensor: a hold when the pose the guard judges is noisy or late (pose noise or
+    latency), re-centring when it is exact (a dropped frame now and then, or a plant mismatch alone, leave
+    it exact). Re-centring is feedback on that pose: through 2 steps of latency a full step towards the
+    seen centre is unstable (e_k+1 = e_k - e_k-2 grows by 1.15 a step), and on a noisy pose it chases the
+    noise; measured on hazardous boxes (docs/results/faults.md, "The guard's stop, chosen by the sensor")."""
+    if ctrl.explore_guard_stop != "auto":
+        return ctrl.explore_guard_stop
+    noisy_or_late = faults.obs_noise_mm or faults.obs_noise_deg or faults.obs_latency
+    return "hold" if noisy_or_late else "recentre"
 
 
 # m: an exact stability margin under which a box counts as a near tip in an evaluation's summary. At rest in

@@ -254,7 +254,14 @@ def describe_effect(cfg: Config = DEFAULT, names=("uniform", "A", "B", "C", "D")
 # ----------------------------------------------------------------------------------------------------------
 # The exploration guard: a box the fixed sequence itself is about to lose is refused, not lost.
 
-GUARD_STEPS = 20  # control steps of re-centring after the guard trips (1 s at 20 Hz)
+GUARD_STEPS = 20  # control steps of the guard's stop after it trips (1 s at 20 Hz)
+# What the guard does once tripped: "recentre" the carriages under the box (belts stopped, both carriages
+# stepped towards the box's centre: `recentre_action`), or "hold" them (belts stopped, carriages still).
+# Re-centring is feedback on the pose the controller sees, and holds a box well when that pose is exact;
+# on a late, noisy estimate it chases where the box was and drags it off (docs/results/faults.md, "The
+# exploration guard in a late, noisy world"), so the controller holds there (`ControllerConfig`'s
+# `explore_guard_stop`).
+STOPS = ("recentre", "hold")
 
 
 def recentre_action(cfg: Config, s) -> np.ndarray:
@@ -282,14 +289,22 @@ def judged_balance(h, b, lead: int, noise: float = 0.0) -> np.ndarray:
 class Guarded:
     """The exploration of one box, step by step, with the guard (`guard`: a fraction of the task's balance
     limit; None: the paper's fixed sequence whatever happens): while the balance error stays within
-    guard x limit the fixed sequence runs; once it exceeds that, `GUARD_STEPS` re-centring steps
-    (`recentre_action`) follow and the exploration ends `tripped` (the controller refuses the box: the
-    exploration has shown that the belts cannot keep it balanced on their own). `next(s, balance_error)`
-    gives the next action, or None when the exploration is over. Every path that explores
-    (`controller.run_episode`, `batch.run_episodes`, the replay) steps through this one object, so they
-    make the same decision."""
+    guard x limit the fixed sequence runs; once it exceeds that, `GUARD_STEPS` steps of its stop
+    (`STOPS`: re-centring, `recentre_action`, or a hold) follow and the exploration ends `tripped` (the
+    controller refuses the box: the exploration has shown that the belts cannot keep it balanced on their
+    own). `next(s, balance_error)` gives the next action, or None when the exploration is over. Every path
+    that explores (`controller.run_episode`, `batch.run_episodes`, the replay) steps through this one
+    object, so they make the same decision."""
 
-    def __init__(self, cfg: Config, guard: float | None, settle: int = 0, lead: int = 0, noise: float = 0.0):
+    def __init__(
+        self,
+        cfg: Config,
+        guard: float | None,
+        settle: int = 0,
+        lead: int = 0,
+        noise: float = 0.0,
+        stop: str = "recentre",
+    ):
         """`settle`: control steps of rest (belts to rest, carriages still) sent after the fixed sequence,
         while the frames of its last steps are still on their way (the controller's sensor and action
         latency: `World.exploration_delay`); the estimator then sees the whole sequence (`align`).
@@ -300,7 +315,12 @@ class Guarded:
         stop (0 keeps the present-value rule).
         `noise`: m, the pose noise std the sensor is stated to have; a change between two frames counts
         towards the trend only beyond 2 x sqrt(2) x noise (with 3 mm the bare trend refused 3 of 100
-        safe boxes of the realistic world that the present-value guard let through)."""
+        safe boxes of the realistic world that the present-value guard let through).
+        `stop`: what the `GUARD_STEPS` after a trip send (`STOPS`): "recentre" (`recentre_action`) or
+        "hold" (belts to rest, carriages still)."""
+        if stop not in STOPS:
+            raise ValueError(f"the guard's stop must be one of {STOPS}, got {stop!r}")
+        self.stop = stop
         if lead < 0:
             raise ValueError(f"the guard's lead must be >= 0 control steps, got {lead}")
         if noise < 0:
@@ -347,7 +367,7 @@ class Guarded:
             if self.recentring == 0:
                 return None
             self.recentring -= 1
-            return recentre_action(self.cfg, s)
+            return recentre_action(self.cfg, s) if self.stop == "recentre" else np.zeros(4)
         if self.k >= len(self.actions):
             if self.settled >= self.settle:
                 return None
@@ -360,18 +380,24 @@ class Guarded:
         """The refusal's explanation (None: not tripped)."""
         if not self.tripped:
             return None
-        return guard_explanation(self.cfg, self.k, self.worst, self.judged, self.lead, self.threshold)
+        return guard_explanation(
+            self.cfg, self.k, self.worst, self.judged, self.lead, self.threshold, self.stop
+        )
 
 
-def guard_explanation(cfg: Config, k: int, worst: float, judged: float, lead: int, threshold: float) -> str:
+def guard_explanation(
+    cfg: Config, k: int, worst: float, judged: float, lead: int, threshold: float, stop: str = "recentre"
+) -> str:
     """The exploration guard's refusal in words: it tripped after `k` fixed steps with the box `worst` (m)
-    off the midline, judged `judged` (m) `lead` steps ahead, against `threshold` (m)."""
+    off the midline, judged `judged` (m) `lead` steps ahead, against `threshold` (m), and stopped by `stop`
+    (`STOPS`)."""
+    then = "the carriages re-centred under it" if stop == "recentre" else "the carriages held still"
     ahead = f" and moving away, {100 * judged:.1f} cm expected {lead} steps ahead" if judged > worst else ""
     return (
         f"refused during the exploration: after {k} of its {N_STEPS} fixed steps the "
         f"box's geometric centre was {100 * worst:.1f} cm off the belts' midline{ahead} (guard "
         f"{100 * threshold:.1f} cm, limit {100 * cfg.task.balance_limit:.1f} cm); the belts "
-        "stopped and the carriages re-centred under it. The fixed exploration cannot hold this box, "
+        f"stopped and {then}. The fixed exploration cannot hold this box, "
         "so neither its estimate nor a turn is attempted."
     )
 
@@ -407,6 +433,7 @@ __all__ = [
     "N_STEPS",
     "N_TRAJ_COLUMNS",
     "N_VECTORS",
+    "STOPS",
     "VECTORS",
     "Guarded",
     "align",

@@ -3,8 +3,9 @@ the device (`boxjax.control.device_loop`).
 
 It sends what `explore.Guarded.next` sends, step by step (a test feeds both the same states and compares
 every action and the end): the fixed sequence while the balance error, extrapolated `lead` steps along its
-trend, stays within the guard; once past it, `GUARD_STEPS` re-centring steps and the exploration ends
-tripped; after the fixed sequence, `settle` rest steps. See `explore.Guarded` for why each rule is there.
+trend, stays within the guard; once past it, `GUARD_STEPS` steps of its stop (re-centring or a hold) and the
+exploration ends tripped; after the fixed sequence, `settle` rest steps. See `explore.Guarded` for why each
+rule is there.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import jax.numpy as jnp
 
 from boxjax import geometry
 from boxjax.config import Config
-from boxjax.estimator.explore import GUARD_STEPS, exploration_actions
+from boxjax.estimator.explore import GUARD_STEPS, STOPS, exploration_actions
 
 
 class GuardState(NamedTuple):
@@ -51,10 +52,13 @@ def step(
     settle: int = 0,
     lead: int = 0,
     noise: float = 0.0,
+    stop: str = "recentre",
 ) -> tuple[GuardState, jax.Array, jax.Array]:
     """(state, action (4,), over) for the state `s` (5,) the controller sees and its balance error:
-    `explore.Guarded(cfg, guard, settle, lead, noise).next(s, balance_error)`, whose None is `over` (then
-    the action is zeros and must not be sent)."""
+    `explore.Guarded(cfg, guard, settle, lead, noise, stop).next(s, balance_error)`, whose None is `over`
+    (then the action is zeros and must not be sent)."""
+    if stop not in STOPS:
+        raise ValueError(f"the guard's stop must be one of {STOPS}, got {stop!r}")
     actions = jnp.asarray(exploration_actions(cfg), jnp.float32)
     threshold = math.inf if guard is None else guard * cfg.task.balance_limit
     b = jnp.abs(balance_error).astype(jnp.float32)
@@ -69,8 +73,9 @@ def step(
     judged_at_trip = jnp.where(trip, judged, st.judged)
     tripped = recentring >= 0
 
-    # tripped: re-centre (belts stopped, both carriages one clipped step toward the box's centre)
+    # tripped: re-centre (belts stopped, both carriages one clipped step toward the box's centre) or hold
     dp = jnp.clip(h[2], -cfg.gripper.max_position_step, cfg.gripper.max_position_step)
+    dp = dp if stop == "recentre" else jnp.zeros_like(dp)
     recentre = jnp.stack([0.0, 0.0, dp, dp]).astype(jnp.float32)
     fixed_left = st.k < actions.shape[0]
     over = jnp.where(tripped, recentring == 0, ~fixed_left & (st.settled >= settle))
