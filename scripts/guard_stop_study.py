@@ -23,6 +23,7 @@ import time
 
 from boxjax.config import DEFAULT as cfg
 from boxjax.control import ControllerConfig
+from boxjax.estimator import explore
 from boxjax.experiments import evaluation as experiments
 from boxjax.fileio import check_writable_dir
 from boxjax.sim.faults import Faults
@@ -38,11 +39,18 @@ WORLDS = {
 }
 
 
-def run(family: str, seed: int, boxes: int, world: str, stop: str) -> dict:
+def run(family: str, seed: int, boxes: int, world: str, stop: str, first_turn_scale: float = 1.0) -> dict:
     ctrl = ControllerConfig(explore_guard_stop=stop)
-    ev = experiments.evaluate(
-        cfg, 1, boxes, seed, family=family, ctrl=ctrl, faults=WORLDS[world], progress=False
-    )
+    shipped = explore.VECTORS
+    if first_turn_scale != 1.0:  # a what-if: the oracle refuses after any exploration; H reads only VECTORS
+        explore.VECTORS = shipped.copy()
+        explore.VECTORS[:3, :2] *= first_turn_scale
+    try:
+        ev = experiments.evaluate(
+            cfg, 1, boxes, seed, family=family, ctrl=ctrl, faults=WORLDS[world], progress=False
+        )
+    finally:
+        explore.VECTORS = shipped
     rows = [r for r in ev.rows if r["hazardous"]]
     lost = [r for r in rows if r.get("lost_exploring")]
     return {
@@ -63,6 +71,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--boxes", type=int, default=300, help="hazardous boxes per family")
     ap.add_argument("--worlds", nargs="+", default=["realistic", "none"], choices=tuple(WORLDS))
     ap.add_argument("--stops", nargs="+", default=["recentre", "hold"], choices=("recentre", "hold"))
+    ap.add_argument(
+        "--first-turn-scale",
+        type=float,
+        default=1.0,
+        help="what-if: scale the belt speeds of the exploration's first turn (its first three vectors)",
+    )
     ap.add_argument("--out", help="write the JSON here")
     args = ap.parse_args(argv)
     if len(args.seeds) != len(args.families) or args.boxes < 1:
@@ -78,7 +92,9 @@ def main(argv=None) -> dict:
         for world in args.worlds:
             for stop in args.stops:
                 row = {"family": family, "seed": seed, "world": world, "stop": stop}
-                row.update(run(family, seed, args.boxes, world, stop))
+                if args.first_turn_scale != 1.0:
+                    row["first_turn_scale"] = args.first_turn_scale
+                row.update(run(family, seed, args.boxes, world, stop, args.first_turn_scale))
                 res["runs"].append(row)
                 print(f"{time.time() - t0:6.0f} s  {json.dumps(row)}", flush=True)
     if args.out:

@@ -42,15 +42,20 @@ WORLDS = {
 COLUMNS = ("true", "seen", "v_rel", "v_std", "y_std")  # m, m, m/s, m/s, m
 
 
-def record_box(truth, key, faults: Faults, ctrl: ControllerConfig) -> tuple[np.ndarray, int]:
+def record_box(
+    truth, key, faults: Faults, ctrl: ControllerConfig, first_turn_scale: float = 1.0
+) -> tuple[np.ndarray, int]:
     """(K+1, 5) the COLUMNS at every step of the unguarded exploration (the fixed sequence and its rest),
-    and the step at which the box was lost (-1: not lost)."""
+    and the step at which the box was lost (-1: not lost). `first_turn_scale` scales the belt speeds of the
+    first turn (the first three vectors), a what-if: the shipped H reads only the sequence as it is."""
     key_reset, _ = jax.random.split(key)
     env = env_for(cfg, "native")
     state = env.reset(key_reset, truth)
     world = World(cfg, faults, ctrl.pose_filter, key, truth)
     world.prepare(state.model)
     guard = explore.Guarded(cfg, None, settle=world.exploration_delay)
+    guard.actions = guard.actions.copy()
+    guard.actions[: 3 * explore.HOLD, :2] *= first_turn_scale
     rows, lost, t = [], -1, 0
     p_prev = None
     s_seen, _ = world.observe(state.s, state.belt_speed)
@@ -85,7 +90,8 @@ def record(args) -> None:
     for family, seed in zip(args.families, args.seeds, strict=True):
         boxes = make_boxes(cfg, args.safe, args.hazardous, seed, family)
         for j in range(len(boxes.keys)):
-            r, k = record_box(boxes.dist(j), jax.random.wrap_key_data(boxes.keys[j]), faults, ctrl)
+            key = jax.random.wrap_key_data(boxes.keys[j])
+            r, k = record_box(boxes.dist(j), key, faults, ctrl, args.first_turn_scale)
             recs.append(r)
             lost.append(k)
             hazardous.append(bool(boxes.hazardous[j]))
@@ -104,6 +110,7 @@ def record(args) -> None:
         hazardous=np.asarray(hazardous),
         names=np.asarray(names),
         world=args.world,
+        first_turn_scale=args.first_turn_scale,
     )
 
 
@@ -191,6 +198,9 @@ def main(argv=None) -> None:
     r.add_argument("--safe", type=int, default=0)
     r.add_argument("--world", default="realistic", choices=tuple(WORLDS))
     r.add_argument("--out", required=True)
+    r.add_argument(
+        "--first-turn-scale", type=float, default=1.0, help="what-if: scale the first turn's belt speeds"
+    )
     j = sub.add_parser("judge")
     j.add_argument("files", nargs="+")
     j.add_argument("--react", type=int, default=3, help="steps a trip must come before the loss")
