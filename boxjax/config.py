@@ -171,7 +171,7 @@ class GripperConfig:
         return round(self.control_dt / self.timestep)
 
 
-EXPLORATIONS = ("fixed", "designed")
+EXPLORATIONS = ("fixed", "designed", "gentle")
 
 
 @dataclass(frozen=True)
@@ -190,8 +190,9 @@ class TaskConfig:
     init_xy_noise: float = 0.0  # m, box centre x and y each ~ U(-n, n)
     init_yaw_noise: float = 0.0  # rad, yaw ~ U(-n, n)
     # The 45-step exploration every episode starts with (boxjax.estimator.explore): "fixed" (the paper's
-    # shape, the shipped sequence) or "designed" (chosen for information, boxjax.estimator.design).
-    exploration: str = "fixed"  # "fixed" or "designed"
+    # shape, the shipped sequence), "designed" (chosen for information, boxjax.estimator.design) or "gentle"
+    # (the fixed one with its first turn at half speed, for a late, noisy sensor: explore.GENTLE).
+    exploration: str = "fixed"  # one of EXPLORATIONS
 
     def __post_init__(self):
         if self.balance_limit <= 0 or self.yaw_tolerance <= 0 or self.max_steps < 1:

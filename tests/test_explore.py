@@ -26,11 +26,12 @@ def named_rollout():
 
 
 DESIGNED_CFG = CFG.replace(task=dataclasses.replace(CFG.task, exploration="designed"))
+GENTLE_CFG = CFG.replace(task=dataclasses.replace(CFG.task, exploration="gentle"))
 
 
-@pytest.mark.parametrize("cfg", [CFG, DESIGNED_CFG], ids=["fixed", "designed"])
+@pytest.mark.parametrize("cfg", [CFG, DESIGNED_CFG, GENTLE_CFG], ids=["fixed", "designed", "gentle"])
 def test_fifteen_vectors_held_three_steps_within_limits(cfg):
-    """Both sequences keep the same rules (the designed one was searched within them)."""
+    """Every sequence keeps the same rules (the designed one was searched within them)."""
     a = explore.exploration_actions(cfg)
     assert a.shape == (45, 4) == (explore.N_STEPS, 4) and a.dtype == np.float32
     assert explore.N_VECTORS == 15 and explore.HOLD == 3
@@ -175,6 +176,22 @@ def test_designed_exploration_keeps_the_named_boxes_balanced():
     assert max(abs(e["dyaw_deg"]) for e in effect.values()) > 2.0
 
 
+def test_the_gentle_exploration_is_the_fixed_one_with_a_slower_first_turn():
+    """Its first turn (vectors 1-3) at half the belt speeds, everything after it the fixed sequence's; on the
+    named boxes it turns them about half as far during that turn."""
+    np.testing.assert_array_equal(explore.vectors(GENTLE_CFG)[:3, :2], 0.5 * explore.VECTORS[:3, :2])
+    np.testing.assert_array_equal(explore.vectors(GENTLE_CFG)[:3, 2:], explore.VECTORS[:3, 2:])
+    np.testing.assert_array_equal(explore.vectors(GENTLE_CFG)[3:], explore.VECTORS[3:])
+    dists = [massdist.named(n, CFG.box) for n in ("uniform", "A")]
+    turn = slice(0, 3 * explore.HOLD + 1)
+    yaw = {
+        name: np.abs(rollout(CFG, dists, explore.exploration_actions(c)[: 3 * explore.HOLD])["s"][:, turn, 4])
+        for name, c in (("fixed", CFG), ("gentle", GENTLE_CFG))
+    }
+    assert np.all(yaw["gentle"].max(1) < 0.7 * yaw["fixed"].max(1))
+    assert np.all(yaw["gentle"].max(1) > 0.2 * yaw["fixed"].max(1))  # it still turns the box
+
+
 def test_models_trained_on_another_exploration_are_refused():
     """The shipped H was trained on the fixed sequence: with the designed one it is refused by name (a
     model saved before the field existed counts as made with its default, the fixed sequence)."""
@@ -184,6 +201,8 @@ def test_models_trained_on_another_exploration_are_refused():
     shipped.default_estimator(CFG)  # the default config still loads it
     with pytest.raises(CheckpointError, match="task.exploration = 'designed'"):
         shipped.default_estimator(DESIGNED_CFG)
+    with pytest.raises(CheckpointError, match="train-estimator --exploration gentle"):
+        shipped.default_estimator(GENTLE_CFG)
     stored = CFG.to_dict()
     del stored["task"]["exploration"]
     assert config_io.field_mismatches(stored, CFG.to_dict(), ["task.exploration"]) == []

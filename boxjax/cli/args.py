@@ -151,7 +151,8 @@ def config_option(p: argparse.ArgumentParser, *used_by: Condition) -> None:
 
 
 def exploration_option(p: argparse.ArgumentParser, *used_by: Condition) -> None:
-    """--exploration fixed|designed: the 45-step exploration (`TaskConfig.exploration`; beats --config)."""
+    """--exploration fixed|designed|gentle: the 45-step exploration (`TaskConfig.exploration`; beats
+    --config)."""
     from boxjax.config import EXPLORATIONS
 
     option(
@@ -159,9 +160,10 @@ def exploration_option(p: argparse.ArgumentParser, *used_by: Condition) -> None:
         "--exploration",
         choices=EXPLORATIONS,
         used_by=used_by,
-        help="the exploration sequence: the fixed one (the paper's shape, the default) or the one designed "
-        "for information (boxjax.estimator.design); the estimator must be trained on it "
-        "(train-estimator --exploration designed)",
+        help="the exploration sequence: the fixed one (the paper's shape, the default), the one designed "
+        "for information (boxjax.estimator.design), or gentle (the fixed one with its first turn at half "
+        "speed, for a late, noisy sensor); a learned estimator must be trained on it "
+        "(train-estimator --exploration NAME)",
     )
 
 

@@ -150,14 +150,26 @@ DESIGNED = np.array(
     ],
     dtype=np.float64,
 )
+# The fixed sequence with its first turn at half speed (`TaskConfig.exploration = "gentle"`): the belts spin
+# up to +-0.045 / 0.06 / 0.045 m/s instead of +-0.09 / 0.12 / 0.09, the rest as VECTORS. An end-heavy box
+# turns about its heavy end during the first turn and its centre swings sideways faster than a sensor 2
+# steps late with 3 mm of noise can follow; at half speed the exploration loses 38 instead of 92 of 2,400
+# hazardous boxes in the realistic world (the guard holding), none instead of 24 of 1,200 with no fault
+# and a hold, and a regressor reads it about as well in the simulator (centre of mass along the box 0.98
+# against 0.90 cm, the rest the same). Measured as a what-if with the oracle (docs/results/faults.md, "A
+# slower first turn"); the shipped H and moments model were trained on VECTORS, so a learned estimator for
+# it must be trained (`boxjax train-estimator --exploration gentle`).
+GENTLE = VECTORS.copy()
+GENTLE[:3, :2] *= 0.5
 N_VECTORS = len(VECTORS)
 N_STEPS = N_VECTORS * HOLD  # 45
 N_TRAJ_COLUMNS = 11  # s (5), applied action (4), measured belt speeds at the end of the step (2)
 
 
 def vectors(cfg: Config = DEFAULT) -> np.ndarray:
-    """(15, 4) the exploration's vectors for `cfg.task.exploration`: VECTORS ("fixed") or DESIGNED."""
-    return DESIGNED if cfg.task.exploration == "designed" else VECTORS
+    """(15, 4) the exploration's vectors for `cfg.task.exploration`: VECTORS ("fixed"), DESIGNED or
+    GENTLE."""
+    return {"designed": DESIGNED, "gentle": GENTLE}.get(cfg.task.exploration, VECTORS)
 
 
 def exploration_actions(cfg: Config = DEFAULT) -> np.ndarray:
@@ -428,6 +440,7 @@ def align(data: dict, delay: int, n_steps: int) -> dict:
 
 __all__ = [
     "DESIGNED",
+    "GENTLE",
     "GUARD_STEPS",
     "HOLD",
     "N_STEPS",
