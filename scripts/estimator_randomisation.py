@@ -15,12 +15,14 @@ hazardous boxes refused, safe boxes refused (false aborts), with 95 % intervals.
 
 The explorations are simulated in parts of --part boxes, part i from seed + i (more boxes extend the same
 data), and every stage is cached in --work (the parts, their randomised views, the checkpoints), so a
-second run only evaluates.
+second run only evaluates. `--exploration gentle|designed` trains on that sequence instead (the same boxes
+and sensor draws; the shipped H, trained on the fixed sequence, is then not evaluated).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -29,7 +31,7 @@ import jax
 import numpy as np
 
 from boxjax import estimator as E
-from boxjax.config import DEFAULT as CFG
+from boxjax.config import DEFAULT, EXPLORATIONS
 from boxjax.control import batch
 from boxjax.control.config import ControllerConfig
 from boxjax.estimator import explore
@@ -42,6 +44,7 @@ from boxjax.training import dataset as ds
 from boxjax.training.estimator import DEFAULT_ESTIMATOR, HAZARD_RECALL_TARGET
 from boxjax.training.randomise import SensorRandomisation, sensor_view
 
+CFG = DEFAULT  # with --exploration, the default config with that exploration (set in main)
 ROWS = {
     "no fault": Faults(),
     "noise 1 mm / 0.5 deg": Faults(obs_noise_mm=1, obs_noise_deg=0.5),
@@ -100,8 +103,9 @@ def _parts(args) -> tuple[dict, dict, dict]:
     datas, views, times = [], [], {"data_s": 0.0, "view_s": 0.0}
     for i in range(args.boxes // args.part):
         seed = args.seed + i
-        clean_path = os.path.join(args.work, f"part_s{seed}_{args.part}.npz")
-        view_path = os.path.join(args.work, f"view_s{seed}_{args.part}.npz")
+        tag = "" if args.exploration == "fixed" else f"{args.exploration}_"
+        clean_path = os.path.join(args.work, f"part_{tag}s{seed}_{args.part}.npz")
+        view_path = os.path.join(args.work, f"view_{tag}s{seed}_{args.part}.npz")
         if os.path.exists(clean_path):
             data, _ = ds.load(clean_path)
         else:
@@ -139,8 +143,11 @@ def main() -> None:
     ap.add_argument("--eval-hazardous", type=int, default=100)
     ap.add_argument("--seed", type=int, default=7, help="seed of the training data, its view and training")
     ap.add_argument("--rows", nargs="+", choices=list(ROWS), default=list(ROWS))
+    ap.add_argument("--exploration", choices=EXPLORATIONS, default="fixed", help="the sequence to train on")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    global CFG
+    CFG = DEFAULT.replace(task=dataclasses.replace(DEFAULT.task, exploration=args.exploration))
     os.makedirs(args.work, exist_ok=True)
     if args.out:  # writable before the work starts
         check_writable_dir(os.path.dirname(os.path.abspath(args.out)), "--out's directory")
@@ -148,15 +155,17 @@ def main() -> None:
     data, view, times = _parts(args)
     report.update(times)
 
-    weights = {"shipped (288k clean)": str(SHIPPED_WEIGHTS)}
+    weights = {"shipped (288k clean)": str(SHIPPED_WEIGHTS)} if args.exploration == "fixed" else {}
+    report["exploration"] = args.exploration
     report["training"] = {}
     for name in args.estimators:
-        path = os.path.join(args.work, f"H_{name}_{args.boxes}.npz")
+        tag = "" if args.exploration == "fixed" else f"{args.exploration}_"
+        path = os.path.join(args.work, f"H_{tag}{name}_{args.boxes}.npz")
         if not os.path.exists(path):
             provenance = {
                 "trained_by": "scripts/estimator_randomisation.py",
                 "command": f"python scripts/estimator_randomisation.py --boxes {args.boxes} "
-                f"--part {args.part} --seed {args.seed} --estimators {name}",
+                f"--part {args.part} --seed {args.seed} --estimators {name} --exploration {args.exploration}",
                 "part_seeds": [args.seed + i for i in range(args.boxes // args.part)],
                 "n_boxes": args.boxes,
                 "config": CFG.to_dict(),
