@@ -289,6 +289,12 @@ def test_the_guard_holds_when_the_pose_is_noisy_or_late():
     assert guard_stop(ControllerConfig(explore_guard_stop="hold"), Faults()) == "hold"
     with pytest.raises(ValueError, match="explore_guard_stop must be one of"):
         ControllerConfig(explore_guard_stop="brake")
+    # an evaluation written before the stop was chosen re-centred whatever the sensor: replayed so
+    from boxjax.experiments.evaluation import controller_from_settings, settings
+
+    old = settings("oracle", ControllerConfig(), 0, "gaussian", Faults(), "gaussian")
+    del old["controller"]["explore_guard_stop"]
+    assert controller_from_settings(old).explore_guard_stop == "recentre"
 
 
 @pytest.mark.parametrize("value", ["1.5", "0", "lots"])

@@ -495,6 +495,7 @@ def controller_from_settings(st: dict) -> ControllerConfig:
     c = dict(st["controller"])
     c.setdefault("explore_guard", None)  # evaluations written before the guard explored without one
     c.setdefault("explore_guard_lead", 0)  # and before its lead, on the present balance error alone
+    c.setdefault("explore_guard_stop", "recentre")  # and before its stop was chosen by the sensor
     c.setdefault("delay_reference", None)  # and before a late loop slowed the planner
     if c.get("sampling") is not None:
         c["sampling"] = SamplingOptions(**c["sampling"])
