@@ -306,7 +306,7 @@ def planner_options(
         metavar="F|off",
         used_by=used_by,
         help="a box whose balance error passes this fraction of the balance limit during the fixed "
-        "exploration is re-centred and refused, not lost; off: the paper's fixed exploration",
+        "exploration is stopped (--guard-stop) and refused, not lost; off: the paper's fixed exploration",
     )
     option(
         p,

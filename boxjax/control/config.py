@@ -32,7 +32,7 @@ class ControllerConfig:
     y_margin: float | None = None  # m, paper planner: keep the box centre inside the carriages' reach
     explore: bool = True  # run the fixed exploration phase first (always needed by a learned estimator)
     # The exploration guard (`explore.Guarded`), a fraction of the balance limit: a box whose balance error
-    # passes it during the fixed exploration is re-centred and refused instead of being lost. None: the
+    # passes it during the fixed exploration is stopped and refused instead of being lost. None: the
     # paper's fixed sequence whatever happens. Models given to `run_episode` (W, PETS: no refusal) always
     # explore without it. 0.875 (3.5 of 4 cm) was chosen over 0.75 on development boxes
     # (docs/results/estimator-and-hazards.md).
