@@ -25,17 +25,19 @@ from boxjax.config import DEFAULT as cfg
 from boxjax.control import ControllerConfig
 from boxjax.estimator import explore
 from boxjax.experiments import evaluation as experiments
+from boxjax.experiments import fault_table
 from boxjax.fileio import check_writable_dir
 from boxjax.sim.faults import Faults
 from boxjax.training.estimator import write_json
 
-WORLDS = {
+REALISTIC = fault_table.row("realistic").faults
+WORLDS = {  # the fault table's realistic row and each of its faults alone
     "none": Faults(),
-    "realistic": Faults(obs_noise_mm=3, obs_noise_deg=1.5, obs_latency=2, drop_rate=0.05, friction=0.4),
-    "noise": Faults(obs_noise_mm=3, obs_noise_deg=1.5),
-    "late": Faults(obs_latency=2),
-    "drops": Faults(drop_rate=0.05),
-    "friction": Faults(friction=0.4),
+    "realistic": REALISTIC,
+    "noise": fault_table.row("noise 3 mm / 1.5 deg").faults,
+    "late": fault_table.row("latency 2 steps").faults,
+    "drops": fault_table.row("drops 5 %").faults,
+    "friction": Faults(friction=REALISTIC.friction),
 }
 
 

@@ -30,15 +30,14 @@ from boxjax.control import ControllerConfig
 from boxjax.control.episode import env_for
 from boxjax.control.world import World
 from boxjax.estimator import explore
+from boxjax.experiments import fault_table
 from boxjax.experiments.evaluation import HAZARD_FAMILIES, make_boxes
 from boxjax.sim.faults import Faults
 from boxjax.training.estimator import write_json
 
-WORLDS = {
-    "none": Faults(),
-    "noise": Faults(obs_noise_mm=3, obs_noise_deg=1.5),
-    "realistic": Faults(obs_noise_mm=3, obs_noise_deg=1.5, obs_latency=2, drop_rate=0.05, friction=0.4),
-}
+WORLDS = {name: fault_table.row(row).faults for name, row in (
+    ("none", "none"), ("noise", "noise 3 mm / 1.5 deg"), ("realistic", "realistic")
+)}  # fmt: skip
 COLUMNS = ("true", "seen", "v_rel", "v_std", "y_std")  # m, m, m/s, m/s, m
 
 

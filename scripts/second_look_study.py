@@ -21,11 +21,12 @@ from boxjax.control import ControllerConfig
 from boxjax.control.episode import env_for, guarded_exploration
 from boxjax.control.world import World
 from boxjax.estimator.belief import learned_estimator
+from boxjax.experiments import fault_table
 from boxjax.experiments.evaluation import make_boxes
 from boxjax.sim.faults import Faults
 from boxjax.training.estimator import write_json
 
-REALISTIC = Faults(obs_noise_mm=3, obs_noise_deg=1.5, obs_latency=2, drop_rate=0.05, friction=0.4)
+REALISTIC = fault_table.row("realistic").faults
 
 
 def explore_twice(truth, key, estimate, ctrl: ControllerConfig, faults: Faults) -> dict:
